@@ -1,0 +1,409 @@
+"""The one ray-casting core: triangle meshes in Warp BVHs, queried by batches of rays.
+
+The simulated LiDAR (simbed) and the localizer's particle renderer both cast through this module.
+
+Conventions and defined results:
+
+* Ranges are float32 metres along the *normalised* direction; a ray that hits nothing within its max
+  range returns ``inf``, mesh id ``-1`` and face id ``-1``.
+* A ray whose max range is ``<= 0`` returns a miss. Max ranges may be ``inf``.
+* Origins and directions must be finite and directions must have non-zero length, else ``InputError``
+  names the first bad ray (checked in numpy before any kernel runs, so the interpreter never sees them).
+* Degenerate triangles (zero area) never produce hits; they are dropped when a mesh is added (counted in
+  :attr:`MeshInfo.dropped_degenerate`). A mesh with no usable triangle is an ``InputError``.
+* Backface hits count: a ray hits a triangle from either side.
+
+Warp's CPU launches run on one core, and release the GIL, so on the CPU a batch is cut into contiguous
+chunks that are launched from a pool of threads, one chunk per core at a time. Contiguous chunks keep each
+origin's rays together, which the BVH traversal needs to stay fast.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from rangemcl.errors import InputError
+
+wp.config.log_level = wp.LOG_ERROR  # no banner, no missing-driver notice on CPU machines
+wp.set_module_options({"enable_backward": False})
+
+_MISS_FACE = -1
+
+
+@wp.func
+def closest_hit(
+    meshes: wp.array[wp.uint64],
+    inv_poses: wp.array[wp.transform],
+    moved: wp.array[wp.int32],
+    origin: wp.vec3,
+    direction: wp.vec3,
+    max_t: float,
+):
+    """Closest hit over all meshes: (t, mesh index, face, normal in the hit mesh's frame).
+
+    On a miss t = max_t and the mesh index is -1. Meshes with ``moved[m] == 0`` sit at the identity
+    pose and skip the ray transform (the common case: the static world).
+    """
+    best_t = max_t
+    best_mesh = -1
+    best_face = -1
+    best_normal = wp.vec3(0.0, 0.0, 0.0)
+    for m in range(meshes.shape[0]):
+        o = origin
+        d = direction
+        if moved[m] != 0:
+            o = wp.transform_point(inv_poses[m], origin)
+            d = wp.transform_vector(inv_poses[m], direction)
+        q = wp.mesh_query_ray(meshes[m], o, d, best_t)
+        if q.result:
+            best_t = q.t
+            best_mesh = m
+            best_face = q.face
+            best_normal = q.normal
+    return best_t, best_mesh, best_face, best_normal
+
+
+@wp.kernel
+def cast_kernel(
+    meshes: wp.array[wp.uint64],
+    inv_poses: wp.array[wp.transform],
+    moved: wp.array[wp.int32],
+    origins: wp.array[wp.vec3],
+    directions: wp.array[wp.vec3],
+    max_ranges: wp.array[float],
+    origin_stride: int,
+    max_range_stride: int,
+    offset: int,
+    want_normals: int,
+    out_range: wp.array[float],
+    out_mesh: wp.array[wp.int32],
+    out_face: wp.array[wp.int32],
+    out_normal: wp.array[wp.vec3],
+):
+    i = wp.tid() + offset
+    # one origin (or max range) may serve the whole batch: stride 0; one per ray: stride 1
+    max_t = max_ranges[i * max_range_stride]
+    t = float(wp.inf)
+    m = -1
+    face = -1
+    normal = wp.vec3(0.0, 0.0, 0.0)
+    if max_t > 0.0:
+        t, m, face, normal = closest_hit(
+            meshes, inv_poses, moved, origins[i * origin_stride], wp.normalize(directions[i]), max_t
+        )
+        if m < 0:
+            t = float(wp.inf)
+        elif want_normals != 0 and moved[m] != 0:
+            normal = wp.transform_vector(wp.transform_inverse(inv_poses[m]), normal)
+    out_range[i] = t
+    out_mesh[i] = wp.int32(m)
+    out_face[i] = wp.int32(face)
+    if want_normals != 0:
+        out_normal[i] = normal
+
+
+@dataclass
+class RayHits:
+    """Result of :meth:`RayCaster.cast` for N rays."""
+
+    ranges: np.ndarray  # (N,) float32 metres, inf on a miss
+    mesh_ids: np.ndarray  # (N,) int32 handle of the hit mesh, -1 on a miss
+    face_ids: (
+        np.ndarray
+    )  # (N,) int32 triangle index within that mesh (after degenerate removal), -1 on a miss
+    normals: np.ndarray | None  # (N, 3) float32 unit world-frame face normals (winding order), if asked
+
+    @property
+    def hit(self) -> np.ndarray:
+        """(N,) bool: the ray hit something within its max range."""
+        return self.mesh_ids >= 0
+
+
+@dataclass
+class MeshInfo:
+    """What the scene knows of one added mesh."""
+
+    name: str
+    movable: bool
+    n_vertices: int
+    n_faces: int
+    dropped_degenerate: int
+    face_map: np.ndarray  # (n_faces,) int32: index of each kept face in the faces given to add_mesh
+
+
+def default_threads() -> int:
+    """Worker threads for CPU launches: every core this process may use."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def resolve_device(device: str | None) -> str:
+    """``"cpu"`` (default), ``"cuda"``/``"cuda:N"``; an unavailable CUDA device is an ``InputError``."""
+    name = "cpu" if device in (None, "", "cpu") else str(device)
+    if name.startswith("cuda"):
+        if not wp.is_cuda_available():
+            raise InputError(
+                f"device {name!r}: no CUDA device is available on this machine (use --device cpu)"
+            )
+        try:
+            wp.get_device(name)
+        except (RuntimeError, ValueError) as err:
+            raise InputError(f"device {name!r}: {err}") from None
+        return name
+    if name != "cpu":
+        raise InputError(f"device {name!r}: expected 'cpu' or 'cuda[:N]'")
+    return name
+
+
+def _as_points(name: str, array, *, allow_single: bool = False) -> np.ndarray:
+    a = np.asarray(array, dtype=np.float32)
+    if allow_single and a.shape == (3,):
+        a = a[None, :]
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise InputError(f"{name}: expected shape (N, 3), got {a.shape}")
+    bad = ~np.isfinite(a).all(axis=1)
+    if bad.any():
+        raise InputError(f"{name}[{int(np.flatnonzero(bad)[0])}] is not finite ({bad.sum()} bad rows)")
+    return np.ascontiguousarray(a)
+
+
+def clean_mesh(name: str, vertices, faces) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Validate a triangle mesh and drop zero-area triangles.
+
+    Returns ``(vertices (V, 3) float32, faces (F, 3) int32, kept (F,) int32 original face indices)``.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces)
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise InputError(f"mesh {name!r}: vertices must have shape (V, 3), got {v.shape}")
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise InputError(f"mesh {name!r}: faces must have shape (F, 3), got {f.shape}")
+    if len(f) == 0 or len(v) == 0:
+        raise InputError(f"mesh {name!r} is empty ({len(v)} vertices, {len(f)} faces)")
+    if not np.issubdtype(f.dtype, np.integer):
+        raise InputError(f"mesh {name!r}: faces must be integer vertex indices, got {f.dtype}")
+    if f.min() < 0 or f.max() >= len(v):
+        raise InputError(
+            f"mesh {name!r}: face indices must lie in [0, {len(v) - 1}], got [{f.min()}, {f.max()}]"
+        )
+    if not np.isfinite(v).all():
+        raise InputError(f"mesh {name!r}: {int((~np.isfinite(v)).any(axis=1).sum())} vertices are not finite")
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    area2 = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    scale = max(float(np.ptp(v, axis=0).max()), 1e-9)
+    kept = np.flatnonzero(area2 > 1e-12 * scale * scale).astype(np.int32)
+    if len(kept) == 0:
+        raise InputError(f"mesh {name!r}: all {len(f)} triangles are degenerate (zero area)")
+    return v.astype(np.float32), np.ascontiguousarray(f[kept], dtype=np.int32), kept
+
+
+class RayCaster:
+    """A scene of triangle meshes that casts batches of rays through Warp BVHs.
+
+    Static geometry goes in one (or a few) large meshes; movable meshes are either moved rigidly with
+    :meth:`set_pose` (no rebuild: rays are transformed into the mesh frame) or deformed with
+    :meth:`update_vertices` (the BVH is refit, not rebuilt).
+
+    Args:
+        device: ``"cpu"`` (default) or ``"cuda[:N]"``.
+        threads: CPU worker threads (default: all cores); ignored on CUDA.
+    """
+
+    def __init__(self, device: str | None = "cpu", threads: int | None = None):
+        self.device = resolve_device(device)
+        self.threads = 1 if self.device != "cpu" else int(threads or default_threads())
+        if self.threads < 1:
+            raise InputError(f"threads must be >= 1, got {threads}")
+        self._meshes: list[wp.Mesh] = []
+        self._info: list[MeshInfo] = []
+        self._poses: list[np.ndarray] = []  # T_world_mesh per mesh, (4, 4)
+        self._ids: wp.array | None = None
+        self._inv: tuple[wp.array, wp.array] | None = None  # inverse poses, moved flags
+        self._lock = threading.Lock()
+        self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
+        wp.load_module(device=self.device)
+
+    # ------------------------------------------------------------------ scene
+    def add_mesh(self, vertices, faces, *, name: str | None = None, movable: bool = False, pose=None) -> int:
+        """Add a triangle mesh (vertices ``(V, 3)`` in its own frame, faces ``(F, 3)``); returns its handle.
+
+        ``pose`` is ``T_world_mesh`` (4×4, default identity).
+        """
+        name = name or f"mesh{len(self._meshes)}"
+        v, f, kept = clean_mesh(name, vertices, faces)
+        with wp.ScopedDevice(self.device):
+            mesh = wp.Mesh(points=wp.array(v, dtype=wp.vec3), indices=wp.array(f.ravel(), dtype=wp.int32))
+        self._meshes.append(mesh)
+        self._info.append(MeshInfo(name, movable, len(v), len(f), int(len(faces) - len(kept)), kept))
+        self._poses.append(np.eye(4))
+        self._ids = None
+        self._inv = None
+        handle = len(self._meshes) - 1
+        if pose is not None:
+            self.set_pose(handle, pose)
+        return handle
+
+    @property
+    def meshes(self) -> list[MeshInfo]:
+        return list(self._info)
+
+    def set_pose(self, handle: int, T_world_mesh) -> None:
+        """Place a mesh rigidly in the world (4×4 homogeneous, rotation part orthonormal)."""
+        T = np.asarray(T_world_mesh, dtype=np.float64)
+        if T.shape != (4, 4) or not np.isfinite(T).all():
+            raise InputError(f"pose of mesh {self._info[handle].name!r} must be a finite 4x4 matrix")
+        R = T[:3, :3]
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0:
+            raise InputError(f"pose of mesh {self._info[handle].name!r}: rotation is not orthonormal")
+        self._poses[handle] = T
+        self._inv = None
+
+    def update_vertices(self, handle: int, vertices) -> None:
+        """Replace a mesh's vertex positions (same count and faces) and refit its BVH."""
+        info = self._info[handle]
+        v = np.asarray(vertices, dtype=np.float32)
+        if v.shape != (info.n_vertices, 3):
+            raise InputError(f"mesh {info.name!r}: expected {info.n_vertices} vertices, got shape {v.shape}")
+        if not np.isfinite(v).all():
+            raise InputError(f"mesh {info.name!r}: new vertices are not finite")
+        mesh = self._meshes[handle]
+        mesh.points.assign(wp.array(v, dtype=wp.vec3, device=self.device))
+        mesh.refit()
+
+    def _scene_arrays(self) -> tuple[wp.array, wp.array, wp.array]:
+        if not self._meshes:
+            raise InputError("the ray-casting scene has no mesh: add one before casting")
+        if self._ids is None:
+            self._ids = wp.array([m.id for m in self._meshes], dtype=wp.uint64, device=self.device)
+        if self._inv is None:
+            inv, moved = [], []
+            for T in self._poses:
+                Ti = np.linalg.inv(T)
+                inv.append(wp.transform(wp.vec3(*Ti[:3, 3]), wp.quat(*_quat_xyzw(Ti[:3, :3]))))
+                moved.append(0 if np.array_equal(T, np.eye(4)) else 1)
+            self._inv = (
+                wp.array(inv, dtype=wp.transform, device=self.device),
+                wp.array(moved, dtype=wp.int32, device=self.device),
+            )
+        return self._ids, *self._inv
+
+    # ------------------------------------------------------------------ casting
+    def cast(self, origins, directions, max_range=np.inf, *, normals: bool = False) -> RayHits:
+        """Cast N rays and return the closest hit of each.
+
+        Args:
+            origins: ``(N, 3)`` ray origins, or one ``(3,)`` origin shared by all rays.
+            directions: ``(N, 3)`` directions (normalised inside; must be non-zero).
+            max_range: scalar or ``(N,)`` max range in metres (``inf`` allowed, ``<= 0`` gives a miss).
+            normals: also return world-frame face normals.
+        """
+        d = _as_points("directions", directions)
+        n = len(d)
+        o = _as_points("origins", origins, allow_single=True)
+        if len(o) not in (1, n):
+            raise InputError(f"origins: expected 1 or {n} rows to match directions, got {len(o)}")
+        d64 = d.astype(np.float64)
+        length = np.sqrt(np.einsum("ij,ij->i", d64, d64))  # float64: no overflow or underflow
+        zero = length == 0.0
+        if zero.any():
+            raise InputError(
+                f"directions[{int(np.flatnonzero(zero)[0])}] has zero length ({zero.sum()} rays)"
+            )
+        d = (d64 / length[:, None]).astype(np.float32)
+        r = np.asarray(max_range, dtype=np.float32).reshape(-1)
+        if len(r) not in (1, n):
+            raise InputError(f"max_range: expected a scalar or {n} values, got {len(r)}")
+        if np.isnan(r).any():
+            raise InputError(f"max_range[{int(np.flatnonzero(np.isnan(r))[0])}] is NaN")
+        ranges = np.empty(n, np.float32)
+        mesh_ids = np.empty(n, np.int32)
+        face_ids = np.empty(n, np.int32)
+        normal_out = np.zeros((n, 3), np.float32) if normals else np.zeros((1, 3), np.float32)
+        if n == 0:
+            return RayHits(ranges, mesh_ids, face_ids, normal_out if normals else None)
+        with self._lock:
+            ids, inv, moved = self._scene_arrays()
+        dev = self.device
+        inputs = [
+            ids,
+            inv,
+            moved,
+            wp.array(o, dtype=wp.vec3, device=dev),
+            wp.array(d, dtype=wp.vec3, device=dev),
+            wp.array(r, dtype=float, device=dev),
+            0 if len(o) == 1 else 1,
+            0 if len(r) == 1 else 1,
+        ]
+        if dev == "cpu":
+            outs = [
+                wp.array(ranges, dtype=float, device=dev, copy=False),
+                wp.array(mesh_ids, dtype=wp.int32, device=dev, copy=False),
+                wp.array(face_ids, dtype=wp.int32, device=dev, copy=False),
+                wp.array(normal_out, dtype=wp.vec3, device=dev, copy=False),
+            ]
+            self._launch_cpu(cast_kernel, n, inputs, [int(normals)], outs)
+        else:
+            outs = [
+                wp.empty(n, dtype=float, device=dev),
+                wp.empty(n, dtype=wp.int32, device=dev),
+                wp.empty(n, dtype=wp.int32, device=dev),
+                wp.zeros(len(normal_out), dtype=wp.vec3, device=dev),
+            ]
+            wp.launch(cast_kernel, dim=n, inputs=[*inputs, 0, int(normals)], outputs=outs, device=dev)
+            ranges, mesh_ids, face_ids, normal_out = (a.numpy() for a in outs)
+        return RayHits(ranges, mesh_ids, face_ids, normal_out if normals else None)
+
+    def render(self, geometry, T_world_sensor, max_range_m: float = np.inf) -> np.ndarray:
+        """Range image ``(H, W)`` float32 seen by a sensor with pixel grid ``geometry``
+        (:class:`~rangemcl.rangeimage.RangeImageGeometry`) at pose ``T_world_sensor``; 0 = no return."""
+        T = np.asarray(T_world_sensor, dtype=np.float64)
+        if T.shape != (4, 4) or not np.isfinite(T).all():
+            raise InputError(f"T_world_sensor must be a finite 4x4 matrix, got shape {T.shape}")
+        R, t = T[:3, :3], T[:3, 3]
+        origins = geometry.origins.reshape(-1, 3) @ R.T + t  # (H*W, 3)
+        directions = geometry.directions.reshape(-1, 3) @ R.T
+        ranges = self.cast(origins, directions, max_range_m).ranges
+        ranges[~np.isfinite(ranges)] = 0.0
+        return ranges.reshape(geometry.shape)
+
+    def _launch_cpu(self, kernel, n: int, inputs: list, tail_inputs: list, outputs: list) -> None:
+        """Launch ``kernel`` over ``n`` items in contiguous chunks on the thread pool (offset passed in)."""
+        n_chunks = 1 if self._pool is None or n < 4096 else min(4 * self.threads, n // 1024)
+        bounds = np.linspace(0, n, n_chunks + 1).astype(int)
+
+        def run(k: int) -> None:
+            lo, hi = int(bounds[k]), int(bounds[k + 1])
+            if hi > lo:
+                wp.launch(
+                    kernel, dim=hi - lo, inputs=[*inputs, lo, *tail_inputs], outputs=outputs, device="cpu"
+                )
+
+        if n_chunks == 1:
+            run(0)
+        else:
+            list(self._pool.map(run, range(n_chunks)))
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
+
+    def __del__(self):  # pragma: no cover - best effort at interpreter exit
+        with contextlib.suppress(Exception):
+            self.close()
+
+
+def _quat_xyzw(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (x, y, z, w) of a rotation matrix."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(R).as_quat()
