@@ -101,8 +101,8 @@ def cylinder(radius: float, height: float, center=(0.0, 0.0, 0.0), segments: int
     """A closed vertical cylinder (z axis) with ``segments`` sides, centred at ``center``."""
     ang = np.linspace(0.0, 2 * np.pi, segments, endpoint=False)
     ring = np.stack([radius * np.cos(ang), radius * np.sin(ang), np.zeros(segments)], 1)
-    lo = ring - [0, 0, height / 2]
-    hi = ring + [0, 0, height / 2]
+    half_height = np.array([0.0, 0.0, height / 2])
+    lo, hi = ring - half_height, ring + half_height
     caps = np.array([[0, 0, -height / 2], [0, 0, height / 2]])
     vertices = np.concatenate([lo, hi, caps]) + np.asarray(center, float)
     cb, ct = 2 * segments, 2 * segments + 1

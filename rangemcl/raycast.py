@@ -34,8 +34,6 @@ from rangemcl.errors import InputError
 wp.config.log_level = wp.LOG_ERROR  # no banner, no missing-driver notice on CPU machines
 wp.set_module_options({"enable_backward": False})
 
-_MISS_FACE = -1
-
 
 @wp.func
 def closest_hit(
@@ -52,8 +50,8 @@ def closest_hit(
     pose and skip the ray transform (the common case: the static world).
     """
     best_t = max_t
-    best_mesh = -1
-    best_face = -1
+    best_mesh = int(-1)  # int(...) makes Warp declare a mutable loop variable
+    best_face = int(-1)
     best_normal = wp.vec3(0.0, 0.0, 0.0)
     for m in range(meshes.shape[0]):
         o = origin
@@ -91,8 +89,8 @@ def cast_kernel(
     # one origin (or max range) may serve the whole batch: stride 0; one per ray: stride 1
     max_t = max_ranges[i * max_range_stride]
     t = float(wp.inf)
-    m = -1
-    face = -1
+    m = int(-1)
+    face = int(-1)
     normal = wp.vec3(0.0, 0.0, 0.0)
     if max_t > 0.0:
         t, m, face, normal = closest_hit(
