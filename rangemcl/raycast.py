@@ -213,14 +213,14 @@ class RayCaster:
 
     Args:
         device: ``"cpu"`` (default) or ``"cuda[:N]"``.
-        threads: CPU worker threads (default: all cores); ignored on CUDA.
+        threads: CPU worker threads (None or 0: all cores); ignored on CUDA.
     """
 
     def __init__(self, device: str | None = "cpu", threads: int | None = None):
         self.device = resolve_device(device)
+        if threads is not None and threads < 0:
+            raise InputError(f"threads must be >= 0 (0 = all cores), got {threads}")
         self.threads = 1 if self.device != "cpu" else int(threads or default_threads())
-        if self.threads < 1:
-            raise InputError(f"threads must be >= 1, got {threads}")
         self._meshes: list[wp.Mesh] = []
         self._info: list[MeshInfo] = []
         self._poses: list[np.ndarray] = []  # T_world_mesh per mesh, (4, 4)
@@ -254,8 +254,14 @@ class RayCaster:
     def meshes(self) -> list[MeshInfo]:
         return list(self._info)
 
+    def _check_handle(self, handle: int) -> MeshInfo:
+        if not isinstance(handle, int | np.integer) or not 0 <= handle < len(self._info):
+            raise InputError(f"no mesh with handle {handle!r} (the scene has {len(self._info)})")
+        return self._info[handle]
+
     def set_pose(self, handle: int, T_world_mesh) -> None:
         """Place a mesh rigidly in the world (4×4 homogeneous, rotation part orthonormal)."""
+        self._check_handle(handle)
         T = np.asarray(T_world_mesh, dtype=np.float64)
         if T.shape != (4, 4) or not np.isfinite(T).all():
             raise InputError(f"pose of mesh {self._info[handle].name!r} must be a finite 4x4 matrix")
@@ -267,7 +273,7 @@ class RayCaster:
 
     def update_vertices(self, handle: int, vertices) -> None:
         """Replace a mesh's vertex positions (same count and faces) and refit its BVH."""
-        info = self._info[handle]
+        info = self._check_handle(handle)
         v = np.asarray(vertices, dtype=np.float32)
         if v.shape != (info.n_vertices, 3):
             raise InputError(f"mesh {info.name!r}: expected {info.n_vertices} vertices, got shape {v.shape}")

@@ -115,7 +115,7 @@ def run_mujoco(model, datas, w: Workload, threads: int, pool) -> np.ndarray:
             job(k)
     else:
         list(pool.map(job, range(len(jobs))))
-    out[out < 0] = np.inf
+    out[(out < 0) | (out > w.max_range_m)] = np.inf  # cutoff culls geoms by their bounds, not hits by range
     return out
 
 
