@@ -136,6 +136,35 @@ class MeshInfo:
     face_map: np.ndarray  # (n_faces,) int32: index of each kept face in the faces given to add_mesh
 
 
+_DRIVER_NOTICE = "Could not find or load the NVIDIA CUDA driver"
+
+
+def init_warp() -> None:
+    """Initialise Warp once, without its missing-driver notice on machines that have no GPU.
+
+    Warp prints that notice from native code, so stderr is captured at the file-descriptor level while
+    Warp starts; every other line it printed is passed on.
+    """
+    if wp._src.context.runtime is not None:  # already initialised
+        return
+    import sys
+    import tempfile
+
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile(mode="w+b") as captured:
+        os.dup2(captured.fileno(), 2)
+        try:
+            wp.init()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        captured.seek(0)
+        for line in captured.read().decode(errors="replace").splitlines():
+            if _DRIVER_NOTICE not in line:
+                print(line, file=sys.stderr)
+
+
 def default_threads() -> int:
     """Worker threads for CPU launches: every core this process may use."""
     try:
@@ -146,6 +175,7 @@ def default_threads() -> int:
 
 def resolve_device(device: str | None) -> str:
     """``"cpu"`` (default), ``"cuda"``/``"cuda:N"``; an unavailable CUDA device is an ``InputError``."""
+    init_warp()
     name = "cpu" if device in (None, "", "cpu") else str(device)
     if name.startswith("cuda"):
         if not wp.is_cuda_available():

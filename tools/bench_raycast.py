@@ -220,7 +220,10 @@ def main() -> None:
         print(f"\n{w.name}: {w.n_rays:,} rays, {hit:.1%} hit within {w.max_range_m:g} m")
         print(f"  {'backend':<8} " + " ".join(f"{f'{th} core(s) Mrays/s':>20}" for th in thread_counts))
         for b in ("warp", "embree", "mujoco"):
-            print(f"  {b:<8} " + " ".join(f"{rate[(b, th)]:>20.2f}" for th in thread_counts))
+            line = f"  {b:<8} " + " ".join(f"{rate[(b, th)]:>20.2f}" for th in thread_counts)
+            if len(thread_counts) > 1:  # how well the machine let each backend use its cores
+                line += f"   all-core speed-up {rate[(b, all_threads)] / rate[(b, 1)]:.2f}x"
+            print(line)
         ratios = {}
         for th in thread_counts:
             ratios[th] = {
