@@ -26,6 +26,8 @@ def write_scan_bin(path, points: np.ndarray, intensity: np.ndarray | None = None
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(records.tobytes())
+            f.flush()
+            os.fsync(f.fileno())  # on disk before any index line that refers to it
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
