@@ -30,6 +30,7 @@ import numpy as np
 import warp as wp
 
 from rangemcl.errors import InputError
+from rangemcl.transforms import invert_rigid, quat_from_matrix
 
 wp.config.log_level = wp.LOG_ERROR  # no banner, no missing-driver notice on CPU machines
 wp.set_module_options({"enable_backward": False})
@@ -254,6 +255,9 @@ class RayCaster:
         self._meshes: list[wp.Mesh] = []
         self._info: list[MeshInfo] = []
         self._poses: list[np.ndarray] = []  # T_world_mesh per mesh, (4, 4)
+        self._inv_xforms: list[
+            np.ndarray
+        ] = []  # inverse pose per mesh as Warp's (px, py, pz, qx, qy, qz, qw)
         self._ids: wp.array | None = None
         self._inv: tuple[wp.array, wp.array] | None = None  # inverse poses, moved flags
         self._lock = threading.Lock()
@@ -273,6 +277,7 @@ class RayCaster:
         self._meshes.append(mesh)
         self._info.append(MeshInfo(name, movable, len(v), len(f), int(len(faces) - len(kept)), kept))
         self._poses.append(np.eye(4))
+        self._inv_xforms.append(np.array([0, 0, 0, 0, 0, 0, 1.0]))
         self._ids = None
         self._inv = None
         handle = len(self._meshes) - 1
@@ -299,6 +304,8 @@ class RayCaster:
         if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0:
             raise InputError(f"pose of mesh {self._info[handle].name!r}: rotation is not orthonormal")
         self._poses[handle] = T
+        Ti = invert_rigid(T)
+        self._inv_xforms[handle] = np.concatenate([Ti[:3, 3], quat_from_matrix(Ti[:3, :3])])
         self._inv = None
 
     def update_vertices(self, handle: int, vertices) -> None:
@@ -319,13 +326,11 @@ class RayCaster:
         if self._ids is None:
             self._ids = wp.array([m.id for m in self._meshes], dtype=wp.uint64, device=self.device)
         if self._inv is None:
-            inv, moved = [], []
-            for T in self._poses:
-                Ti = np.linalg.inv(T)
-                inv.append(wp.transform(wp.vec3(*Ti[:3, 3]), wp.quat(*_quat_xyzw(Ti[:3, :3]))))
-                moved.append(0 if np.array_equal(T, np.eye(4)) else 1)
+            moved = [0 if np.array_equal(T, np.eye(4)) else 1 for T in self._poses]
             self._inv = (
-                wp.array(inv, dtype=wp.transform, device=self.device),
+                wp.array(
+                    np.asarray(self._inv_xforms, dtype=np.float32), dtype=wp.transform, device=self.device
+                ),
                 wp.array(moved, dtype=wp.int32, device=self.device),
             )
         return self._ids, *self._inv
@@ -434,10 +439,3 @@ class RayCaster:
     def __del__(self):  # pragma: no cover - best effort at interpreter exit
         with contextlib.suppress(Exception):
             self.close()
-
-
-def _quat_xyzw(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w) of a rotation matrix."""
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_matrix(R).as_quat()

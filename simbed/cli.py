@@ -1,6 +1,8 @@
-"""The ``simbed`` console script. Scenes, drives and recordings arrive with the test-bed issue."""
+"""The ``simbed`` console script. Heavy imports live inside the commands so ``--help`` stays fast."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import typer
 
@@ -10,17 +12,140 @@ from simbed import __version__
 app = typer.Typer(
     name="simbed",
     help="Simulation test bed: MuJoCo towns, a driven car, simulated LiDAR, recorded drives.",
+    no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
-    invoke_without_command=True,
 )
 
 
 @app.callback()
-def _root(ctx: typer.Context, version: bool = version_option(__version__)) -> None:
+def _root(version: bool = version_option(__version__)) -> None:
     """Simulation test bed: MuJoCo towns, a driven car, simulated LiDAR, recorded drives."""
-    if ctx.invoked_subcommand is None:
-        typer.echo(ctx.get_help())
+
+
+@app.command("make-town")
+def make_town(
+    out: Path = typer.Option(..., help="MJCF file to write (its .yaml sidecar is written beside it)."),
+    seed: int = typer.Option(0, help="Seed of the layout."),
+    size: float = typer.Option(400.0, help="Side of the square town, metres."),
+    variants: int = typer.Option(2, help="Parked-car variants (one per mapping/test run)."),
+) -> None:
+    """Generate a town: roads with loops and junctions, terrain, buildings, poles, trees, parked cars."""
+    from simbed.towngen import generate_town
+
+    info = generate_town(seed, size, out, n_parked_variants=variants)
+    typer.echo(
+        f"wrote {out} and {out.with_suffix('.yaml')}: {len(info.nodes)} junctions, {len(info.edges)} roads, "
+        f"{info.total_length_m:.0f} m of road, {info.parked_variants} parked-car variants"
+    )
+
+
+@app.command()
+def record(
+    out: Path = typer.Option(..., help="Sequence folder to write (KITTI layout)."),
+    scene: str = typer.Option("town_small", help="Scene name in scenes/ or an MJCF file."),
+    route: str = typer.Option("mapping", help="mapping, test, test-N, or a waypoint file (x y per line)."),
+    sensor: str = typer.Option("os1-64", help="LiDAR preset or sensor YAML."),
+    frames: int = typer.Option(100, help="LiDAR frames to record (fewer if the route ends first)."),
+    actors: int = typer.Option(0, help="Moving actors (cars, cyclists, pedestrians)."),
+    variant: int = typer.Option(0, help="Parked-car variant present in the scene."),
+    seed: int = typer.Option(0, help="Seed of everything random in the run."),
+    skew: bool = typer.Option(True, help="Per-column sensor poses, so motion skews the scan."),
+    device: str = typer.Option("cpu", help="Warp device: cpu or cuda."),
+    overwrite: bool = typer.Option(False, help="Replace an existing sequence in OUT."),
+) -> None:
+    """Drive a route and record LiDAR, ground-truth poses, odometry and IMU in the KITTI layout."""
+    import sys
+
+    from simbed.record import record as run_record
+
+    s = run_record(
+        scene,
+        route,
+        sensor,
+        out,
+        frames=frames,
+        actors=actors,
+        variant=variant,
+        seed=seed,
+        skew=skew,
+        device=device,
+        overwrite=overwrite,
+        progress=sys.stderr.isatty(),
+    )
+    typer.echo(
+        f"wrote {s.frames} frames to {s.out} ({s.seconds_simulated:.1f} s simulated, "
+        f"{s.distance_driven_m:.0f} m "
+        f"of a {s.route_length_m:.0f} m route{', route finished' if s.route_done else ''})"
+    )
+
+
+@app.command("export-mesh")
+def export_mesh(
+    out: Path = typer.Option(..., help="PLY file to write."),
+    scene: str = typer.Option("town_small", help="Scene name in scenes/ or an MJCF file."),
+    variant: int = typer.Option(0, help="Parked-car variant to include."),
+) -> None:
+    """Write the scene's true static geometry (the ground truth of map quality) as PLY."""
+    from simbed.geometry import write_ply
+    from simbed.world import World
+
+    world = World(scene, variant=variant)
+    v, f = world.static_triangles
+    write_ply(out, v, f)
+    typer.echo(f"wrote {out}: {len(f):,} triangles, {len(v):,} vertices")
+
+
+@app.command()
+def render(
+    out: Path = typer.Option(..., help="PNG file to write."),
+    scene: str = typer.Option("town_small", help="Scene name in scenes/ or an MJCF file."),
+    actors: int = typer.Option(0, help="Moving actors to show."),
+    variant: int = typer.Option(0, help="Parked-car variant to show."),
+    seed: int = typer.Option(0, help="Seed of the actors' paths."),
+    camera: str = typer.Option(None, help="A camera of the model (default: behind the car)."),
+    scan: Path = typer.Option(None, help="Instead: a sequence folder whose frame to draw as a range image."),
+    frame: int = typer.Option(0, help="With --scan: the frame."),
+) -> None:
+    """Write a PNG of the scene with the car and actors, or (--scan) of a recorded scan's range image."""
+    import numpy as np
+
+    if scan is not None:
+        from rangemcl.dataset import load_sequence
+        from rangemcl.plots import save_range_image_png
+        from rangemcl.rangeimage import RangeImageGeometry
+        from rangemcl.sensors import spec_from_dict
+
+        seq = load_sequence(scan)
+        if not 0 <= frame < len(seq):
+            from rangemcl.errors import InputError
+
+            raise InputError(f"{scan}: frame {frame} out of range (the sequence has {len(seq)})")
+        points = seq.scan(frame)
+        sensor = seq.meta.get("sensor")
+        if sensor:
+            spec = spec_from_dict(sensor, where=f"{scan}/meta.yaml")
+            geometry = RangeImageGeometry.for_spec(spec)
+            pm = seq.point_meta(frame)
+            rows = spec.row_of_beam[pm["ring"]] if "ring" in pm else None
+            image = geometry.project(points, rows=rows, cols=pm.get("column"))
+            top = spec.max_range_m
+        else:  # a foreign sequence: paper Eq. 1 with KITTI's HDL-64 field of view
+            image = RangeImageGeometry.for_fov(64, 900, 3.0, -25.0).project(points)
+            top = None
+        save_range_image_png(out, image.ranges, top)
+        typer.echo(f"wrote {out}: frame {frame} of {scan}, {int(np.count_nonzero(image.ranges))} returns")
+        return
+    from simbed.render import render_png
+    from simbed.world import World
+
+    world = World(scene, variant=variant, n_actors=actors, rng=np.random.default_rng(seed))
+    if world.car is not None and world.town is not None:
+        x, y, yaw = world.town.spawn
+        world.car.place(world.model, world.data, x, y, float(world.ground_height(x, y)) + 0.02, yaw)
+    world.step(int(0.5 / world.model.opt.timestep))  # let it settle, actors move off
+    render_png(world, out, camera=camera)
+    typer.echo(f"wrote {out}")
 
 
 def main() -> None:

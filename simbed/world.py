@@ -1,0 +1,167 @@
+"""A MuJoCo scene as the LiDAR sees it: the model, its moving actors, and its triangles in the shared
+Warp ray caster (static geometry in one BVH, each moving body as a movable mesh, the ego car left out)."""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from rangemcl.errors import InputError
+from rangemcl.raycast import RayCaster
+from simbed.actors import Actor, add_actor_bodies, bind_actors, place_actors, plan_actors
+from simbed.geometry import body_pose, split_static_dynamic
+from simbed.routes import RoadGraph
+from simbed.towngen import TownInfo, load_town_info
+from simbed.vehicle import CarHandles
+
+PARKED = re.compile(r"^parked_v(\d+)_")
+
+
+def scenes_dir() -> Path:
+    """The folder of shipped scenes (``$SIMBED_SCENES`` overrides)."""
+    return Path(os.environ.get("SIMBED_SCENES", Path(__file__).resolve().parents[1] / "scenes"))
+
+
+def resolve_scene(scene: str | os.PathLike) -> Path:
+    """A scene name (``town_small``) or a path to an MJCF file."""
+    p = Path(scene)
+    if p.suffix.lower() != ".xml":
+        p = scenes_dir() / f"{scene}.xml"
+    if not p.is_file():
+        shipped = sorted(q.stem for q in scenes_dir().glob("town*.xml"))
+        raise InputError(f"{p}: no such scene file (shipped scenes: {', '.join(shipped) or 'none'})")
+    return p
+
+
+def load_model_spec(path: Path) -> mujoco.MjSpec:
+    try:
+        return mujoco.MjSpec.from_file(str(path))
+    except Exception as err:  # MuJoCo raises ValueError with a multi-line message
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise InputError(f"{path}: malformed MJCF scene: {first}") from None
+
+
+class World:
+    """A loaded scene, ready to step and to be ray-cast.
+
+    Args:
+        scene: scene name or MJCF path. A town's sidecar YAML (same stem) gives roads and terrain.
+        variant: which parked-car variant is present (bodies ``parked_v{k}_*`` of other k are removed
+            from the LiDAR's world and from collisions, and made invisible).
+        n_actors: moving actors (needs a town with roads).
+        rng: the run's seeded generator (actor paths).
+        device, threads: for the ray caster.
+    """
+
+    def __init__(
+        self,
+        scene: str | os.PathLike,
+        *,
+        variant: int = 0,
+        n_actors: int = 0,
+        rng: np.random.Generator | None = None,
+        device: str = "cpu",
+        threads: int | None = None,
+        segments: int = 24,
+    ):
+        rng = rng or np.random.default_rng(0)
+        self.path = resolve_scene(scene)
+        sidecar = self.path.with_suffix(".yaml")
+        self.town: TownInfo | None = load_town_info(sidecar) if sidecar.is_file() else None
+        spec = load_model_spec(self.path)
+        if n_actors and self.town is None:
+            raise InputError(f"{self.path}: actors need a town with roads ({sidecar} is missing)")
+        self.actors: list[Actor] = []
+        if n_actors:
+            t = self.town
+            self.actors = plan_actors(
+                n_actors, self.graph, t.lane_width_m, t.road_width_m, rng, keep_clear_xy=t.spawn[:2]
+            )
+            add_actor_bodies(spec, self.actors)
+        try:
+            self.model = spec.compile()
+        except Exception as err:
+            first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+            raise InputError(f"{self.path}: the scene does not compile: {first}") from None
+        self.data = mujoco.MjData(self.model)
+        bind_actors(self.model, self.actors)
+        self.variant = variant
+        self.hidden_geoms = self._hide_other_variants(variant)
+        has_car = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, "car") >= 0
+        self.car = CarHandles.find(self.model, self.data) if has_car else None
+        self.time = 0.0
+        place_actors(self.data, self.actors, 0.0, self.ground_height)
+        mujoco.mj_forward(self.model, self.data)
+
+        hidden = set(self.hidden_geoms.tolist())
+        parts = split_static_dynamic(
+            self.model,
+            self.data,
+            exclude_bodies=[self.car.body] if self.car else [],
+            include_geom=lambda g: g not in hidden,
+            segments=segments,
+        )
+        self.caster = RayCaster(device=device, threads=threads)
+        v, f, _ = parts.static
+        self.static_handle = self.caster.add_mesh(v, f, name="static")
+        self.static_triangles = (v, f)
+        self.dynamic_handles: dict[int, int] = {}
+        for bm in parts.dynamic:
+            h = self.caster.add_mesh(
+                bm.vertices, bm.faces, name=bm.name, movable=True, pose=body_pose(self.data, bm.body_id)
+            )
+            self.dynamic_handles[bm.body_id] = h
+        actor_bodies = {a.body_id for a in self.actors}
+        self.actor_handles = [h for b, h in self.dynamic_handles.items() if b in actor_bodies]
+
+    @property
+    def graph(self) -> RoadGraph:
+        if self.town is None:
+            raise InputError(
+                f"{self.path}: this scene has no road network ({self.path.with_suffix('.yaml')})"
+            )
+        return RoadGraph(np.asarray(self.town.nodes, float), np.asarray(self.town.edges, int))
+
+    def ground_height(self, x, y):
+        """Terrain height under (x, y): from the town's terrain, or 0 for scenes without one."""
+        if self.town is not None:
+            return self.town.ground_height(x, y)
+        return np.zeros_like(np.asarray(x, dtype=float))
+
+    def _hide_other_variants(self, variant: int) -> np.ndarray:
+        """Remove the parked cars of other variants: no collisions, invisible; returns their geom ids."""
+        m = self.model
+        variants = set()
+        hidden = []
+        for b in range(m.nbody):
+            match = PARKED.match(mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, b) or "")
+            if not match:
+                continue
+            variants.add(int(match.group(1)))
+            if int(match.group(1)) != variant:
+                hidden.extend(np.flatnonzero(m.geom_bodyid == b).tolist())
+        if variants and variant not in variants:
+            raise InputError(f"{self.path}: no parked-car variant {variant} (it has {sorted(variants)})")
+        hidden = np.asarray(hidden, dtype=int)
+        if len(hidden):
+            m.geom_contype[hidden] = 0
+            m.geom_conaffinity[hidden] = 0
+            m.geom_rgba[hidden, 3] = 0.0
+        return hidden
+
+    def sync_caster(self) -> None:
+        """Move actors to where they are now, and each dynamic mesh to its body's pose (before casting)."""
+        place_actors(self.data, self.actors, self.time, self.ground_height)
+        mujoco.mj_kinematics(self.model, self.data)
+        for body, handle in self.dynamic_handles.items():
+            self.caster.set_pose(handle, body_pose(self.data, body))
+
+    def step(self, n: int = 1) -> None:
+        """Advance physics ``n`` steps (actors have no physical effect: they move in :meth:`sync_caster`)."""
+        for _ in range(n):
+            mujoco.mj_step(self.model, self.data)
+            self.time += self.model.opt.timestep
