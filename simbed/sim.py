@@ -94,9 +94,11 @@ class Drive:
         times = [t_start]
         poses = [self.sensor_pose()]
         w = lidar.geometry.shape[1]
-        bounds = np.linspace(0, w, self.chunks + 1).astype(int)
-        for k in range(self.chunks):
-            t_chunk_end = t_start + period * (k + 1) / self.chunks
+        # with skew, columns are cast chunk by chunk as they fire; without, all at once from the end pose
+        chunks = self.chunks if lidar.skew else 1
+        bounds = np.linspace(0, w, chunks + 1).astype(int)
+        for k in range(chunks):
+            t_chunk_end = t_start + period * (k + 1) / chunks
             while world.time < t_chunk_end - 1e-9:
                 self.controller.control(world.data, self.dt)
                 world.step()
