@@ -104,7 +104,7 @@ def test_moving_actors_appear_where_mujoco_puts_them():
             continue
         T = frame.T_world_sensor
         world_pts = pts @ T[:3, :3].T + T[:3, 3]
-        # distance of each actor point to the nearest actor box, as MuJoCo placed the bodies at the sweep's end
+        # distance of each actor point to the nearest actor box, as MuJoCo placed the bodies at the end
         best = np.full(len(world_pts), np.inf)
         for a in world.actors:
             R = world.data.xmat[a.body_id].reshape(3, 3)
