@@ -20,7 +20,6 @@ origin's rays together, which the BVH traversal needs to stay fast.
 
 from __future__ import annotations
 
-import contextlib
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -296,16 +295,28 @@ class RayCaster:
 
     def set_pose(self, handle: int, T_world_mesh) -> None:
         """Place a mesh rigidly in the world (4×4 homogeneous, rotation part orthonormal)."""
-        self._check_handle(handle)
-        T = np.asarray(T_world_mesh, dtype=np.float64)
-        if T.shape != (4, 4) or not np.isfinite(T).all():
-            raise InputError(f"pose of mesh {self._info[handle].name!r} must be a finite 4x4 matrix")
-        R = T[:3, :3]
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0:
-            raise InputError(f"pose of mesh {self._info[handle].name!r}: rotation is not orthonormal")
-        self._poses[handle] = T
+        self.set_poses([handle], np.asarray(T_world_mesh, dtype=np.float64)[None])
+
+    def set_poses(self, handles, T_world_meshes) -> None:
+        """Place several meshes at once: ``handles`` (K,) and poses ``(K, 4, 4)`` (checked together)."""
+        handles = list(handles)
+        T = np.asarray(T_world_meshes, dtype=np.float64)
+        if T.shape != (len(handles), 4, 4) or not np.isfinite(T).all():
+            names = ", ".join(repr(self._check_handle(h).name) for h in handles)
+            raise InputError(f"pose of mesh {names} must be a finite 4x4 matrix, got shape {T.shape[1:]}")
+        for h in handles:
+            self._check_handle(h)
+        R = T[:, :3, :3]
+        error = np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
+        bad = (error > 1e-5) | (np.linalg.det(R) < 0)
+        if bad.any():
+            name = self._info[handles[int(np.flatnonzero(bad)[0])]].name
+            raise InputError(f"pose of mesh {name!r}: rotation is not orthonormal")
         Ti = invert_rigid(T)
-        self._inv_xforms[handle] = np.concatenate([Ti[:3, 3], quat_from_matrix(Ti[:3, :3])])
+        xforms = np.concatenate([Ti[:, :3, 3], quat_from_matrix(Ti[:, :3, :3])], axis=1)  # (K, 7)
+        for h, Tk, xf in zip(handles, T, xforms, strict=True):
+            self._poses[h] = Tk
+            self._inv_xforms[h] = xf
         self._inv = None
 
     def update_vertices(self, handle: int, vertices) -> None:
@@ -376,9 +387,10 @@ class RayCaster:
             ids,
             inv,
             moved,
-            wp.array(o, dtype=wp.vec3, device=dev),
-            wp.array(d, dtype=wp.vec3, device=dev),
-            wp.array(r, dtype=float, device=dev),
+            # on the CPU the kernel reads the numpy buffers in place (they are contiguous float32 here)
+            wp.array(o, dtype=wp.vec3, device=dev, copy=dev != "cpu"),
+            wp.array(d, dtype=wp.vec3, device=dev, copy=dev != "cpu"),
+            wp.array(np.ascontiguousarray(r), dtype=float, device=dev, copy=dev != "cpu"),
             0 if len(o) == 1 else 1,
             0 if len(r) == 1 else 1,
         ]
@@ -436,6 +448,8 @@ class RayCaster:
             self._pool.shutdown()
             self._pool = None
 
-    def __del__(self):  # pragma: no cover - best effort at interpreter exit
-        with contextlib.suppress(Exception):
+    def __del__(self):  # pragma: no cover - best effort, also at interpreter exit when globals are gone
+        try:  # noqa: SIM105 - contextlib may already be torn down at exit
             self.close()
+        except Exception:
+            pass

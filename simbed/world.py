@@ -157,8 +157,9 @@ class World:
         """Move actors to where they are now, and each dynamic mesh to its body's pose (before casting)."""
         place_actors(self.data, self.actors, self.time, self.ground_height)
         mujoco.mj_kinematics(self.model, self.data)
-        for body, handle in self.dynamic_handles.items():
-            self.caster.set_pose(handle, body_pose(self.data, body))
+        if self.dynamic_handles:
+            bodies = list(self.dynamic_handles)
+            self.caster.set_poses(self.dynamic_handles.values(), [body_pose(self.data, b) for b in bodies])
 
     def step(self, n: int = 1) -> None:
         """Advance physics ``n`` steps (actors have no physical effect: they move in :meth:`sync_caster`)."""
