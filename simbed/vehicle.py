@@ -167,7 +167,8 @@ class RouteFollower:
         steer = float(np.clip(steer, -self.car.max_steer_rad, self.car.max_steer_rad))
         v_ref = 0.0 if self.done else self.target_speed(speed)
         err = v_ref - speed
-        self.integral = float(np.clip(self.integral + err * dt, -4.0, 4.0))
+        if abs(err) < 1.0:  # integrate near the target only, so accelerating does not wind it up
+            self.integral = float(np.clip(self.integral + err * dt, -2.0, 2.0))
         torque = np.clip(
             self.kp * err + self.ki * self.integral, -self.car.max_torque_nm, self.car.max_torque_nm
         )
