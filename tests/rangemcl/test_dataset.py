@@ -355,7 +355,8 @@ def test_killed_recording_leaves_a_readable_prefix(tmp_path: Path) -> None:
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait()
     seq = load_sequence(root, require_poses=True)
-    assert len(seq) >= 20 and seq.meta["complete"] is False
+    # poses.txt had 20 lines; the kill may land before that frame's other lines, which cuts it
+    assert len(seq) >= 19 and seq.meta["complete"] is False
     assert len(seq.times) == len(seq.odometry) == len(seq.imu_roll_pitch) == len(seq)
     assert seq.scan(len(seq) - 1).shape == (200, 3)
     assert seq.point_meta(len(seq) - 1)["ring"].shape == (200,)
