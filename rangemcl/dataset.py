@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import math
 import os
-import re
 import shutil
 import tempfile
 import zipfile
@@ -46,6 +45,7 @@ import yaml
 
 from rangemcl.errors import InputError
 from rangemcl.scanio import read_scan_bin, write_scan_bin
+from rangemcl.yamlio import parse_yaml
 
 __all__ = [
     "ROTATION_TOL",
@@ -234,27 +234,6 @@ def poses_to_tum(poses: Any, times: Any) -> list[str]:
 # --- meta.yaml -------------------------------------------------------------------------------------------
 
 
-class _MetaLoader(yaml.SafeLoader):
-    """Safe loader that rejects duplicate keys and reads YAML 1.2 floats such as ``1e3``."""
-
-    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
-        self.flatten_mapping(node)
-        keys = [key.value for key, _ in node.value if isinstance(key, yaml.ScalarNode)]
-        for i, key in enumerate(keys):
-            if key in keys[:i]:
-                raise yaml.constructor.ConstructorError(
-                    None, None, f"duplicate key {key!r}", node.value[i][0].start_mark
-                )
-        return super().construct_mapping(node, deep)
-
-
-_MetaLoader.add_implicit_resolver(
-    "tag:yaml.org,2002:float",
-    re.compile(r"^[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)[eE][-+]?[0-9]+$"),
-    list("-+.0123456789"),
-)
-
-
 def _read_meta(path: Path) -> dict[str, Any]:
     try:
         text = path.read_text(encoding="utf-8")
@@ -264,13 +243,7 @@ def _read_meta(path: Path) -> dict[str, Any]:
         raise InputError(f"{path}: not a text file (not UTF-8)") from None
     except OSError as err:
         raise _oserror(path, "read meta", err) from None
-    try:
-        data = yaml.load(text, Loader=_MetaLoader)  # a SafeLoader subclass: safe
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        problem = getattr(exc, "problem", None) or " ".join(str(exc).split())
-        raise InputError(f"{path}: malformed YAML{at}: {problem}") from None
+    data = parse_yaml(text, str(path))
     if data is None:
         return {}
     if not isinstance(data, dict):

@@ -24,7 +24,6 @@ import difflib
 import math
 import numbers
 import os
-import re
 import reprlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -38,6 +37,7 @@ import numpy as np
 import yaml
 
 from rangemcl.errors import InputError
+from rangemcl.yamlio import parse_yaml
 
 DEFAULT_MOUNT_XYZ_M = (0.0, 0.0, 1.73)
 """Default sensor position on the car base: 1.73 m above the ground under the rear axle, level."""
@@ -353,33 +353,8 @@ def spec_from_dict(data: Mapping[str, Any], where: str = "<dict>") -> LidarSpec:
         raise InputError(f"{where}: {exc}") from None
 
 
-class _StrictLoader(yaml.SafeLoader):
-    """Safe loader that rejects duplicate keys and reads YAML 1.2 floats such as ``1e3``."""
-
-    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
-        self.flatten_mapping(node)
-        keys = [key.value for key, _ in node.value if isinstance(key, yaml.ScalarNode)]
-        for i, key in enumerate(keys):
-            if key in keys[:i]:
-                raise yaml.constructor.ConstructorError(
-                    None, None, f"duplicate key {key!r}", node.value[i][0].start_mark
-                )
-        return super().construct_mapping(node, deep)
-
-
-# PyYAML follows YAML 1.1, where "1e3" (no dot) is a string.
-_FLOAT_WITH_EXPONENT = re.compile(r"^[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)[eE][-+]?[0-9]+$")
-_StrictLoader.add_implicit_resolver("tag:yaml.org,2002:float", _FLOAT_WITH_EXPONENT, list("-+.0123456789"))
-
-
 def _spec_from_yaml(text: str, where: str) -> LidarSpec:
-    try:
-        data = yaml.load(text, Loader=_StrictLoader)  # a SafeLoader subclass: safe
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        problem = getattr(exc, "problem", None) or " ".join(str(exc).split())
-        raise InputError(f"{where}: malformed YAML{at}: {problem}") from exc
+    data = parse_yaml(text, where)
     if not isinstance(data, dict):
         got = "an empty file" if data is None else f"a {type(data).__name__}"
         raise InputError(f"{where}: expected a mapping of LiDAR spec keys, got {got}")
