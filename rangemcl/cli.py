@@ -129,6 +129,96 @@ def sweep(
     typer.echo(f"  wrote {png} and {scan}")
 
 
+@app.command("build-map")
+def build_map(
+    seq_dir: Path = typer.Argument(..., help="A sequence folder (KITTI layout) with poses."),
+    out: Path = typer.Option(..., help="Map folder to write."),
+    config: Path = typer.Option(None, help="YAML settings (defaults: see the map's config.yaml)."),
+    workers: int = typer.Option(None, help="Tile jobs in parallel (default: the config's, 0 = all cores)."),
+) -> None:
+    """Build a tiled mesh map: range-image normals, ground labels, Poisson per tile, ground simplification."""
+    import sys
+
+    from rangemcl.config import load_config
+    from rangemcl.mapping.pipeline import MapSettings
+    from rangemcl.mapping.pipeline import build_map as run
+
+    settings = load_config(MapSettings, config)
+    if workers is not None:
+        settings.workers = workers
+    r = run(seq_dir, out, settings, progress=sys.stderr.isatty())
+    typer.echo(
+        f"wrote {out}: {r.triangles:,} triangles in {r.tiles} tiles from {r.scans_used}/{r.scans_total} "
+        f"scans ({r.points_used:,} points; ground simplification {r.triangles_before_simplify:,} -> "
+        f"{r.triangles:,} triangles) in {r.seconds.get('total', 0):.1f} s, peak memory {r.peak_rss_mb:.0f} MB"
+    )
+    if r.scans_skipped_empty or r.points_nonfinite:
+        typer.echo(
+            f"  skipped {r.scans_skipped_empty} scans with no valid point, "
+            f"{r.points_nonfinite} NaN/inf points"
+        )
+
+
+@app.command("import-mesh")
+def import_mesh_cmd(
+    mesh: Path = typer.Argument(..., help="A triangle mesh file (PLY, OBJ)."),
+    out: Path = typer.Option(..., help="Map folder to write."),
+    tile_size: float = typer.Option(100.0, help="Tile side, metres."),
+) -> None:
+    """Turn any triangle mesh (e.g. a published range-mcl map) into a map folder."""
+    from rangemcl.mapping.meshmap import import_mesh
+
+    m = import_mesh(mesh, tile_size_m=tile_size, meta={"source_mesh": str(mesh.resolve())})
+    m.save(out)
+    typer.echo(f"wrote {out}: {m.n_triangles:,} triangles in {len(m.tiles)} tiles")
+
+
+@app.command("map-info")
+def map_info(map_dir: Path = typer.Argument(..., help="A map folder.")) -> None:
+    """Print a map's size, triangles, tiles and extent."""
+    from rangemcl.mapping.meshmap import MeshMap, map_summary
+
+    summary = map_summary(MeshMap.load(map_dir))
+    width = max(len(k) for k in summary)
+    for key, value in summary.items():
+        typer.echo(f"{key:<{width}}  {value}")
+
+
+@app.command("map-quality")
+def map_quality_cmd(
+    map_dir: Path = typer.Argument(..., help="A map folder."),
+    truth: Path = typer.Option(..., help="The true surface as a mesh file (e.g. from simbed export-mesh)."),
+    reference: Path = typer.Option(
+        None,
+        help="A sequence whose scans give the visible true surface for completeness (default: the truth).",
+    ),
+    tolerance: float = typer.Option(0.2, help="Completeness tolerance, metres."),
+    json_out: Path = typer.Option(None, "--json", help="Also write the figures here."),
+) -> None:
+    """Measure a map against a true surface: accuracy (distances) and completeness."""
+    import json
+
+    import numpy as np
+
+    from rangemcl.mapping.meshmap import MeshMap, import_mesh
+    from rangemcl.mapping.quality import map_quality
+
+    m = MeshMap.load(map_dir)
+    t = import_mesh(truth)
+    ref = None
+    if reference is not None:
+        from rangemcl.dataset import load_sequence
+
+        seq = load_sequence(reference, require_poses=True)
+        clouds = [seq.scan(i) @ seq.poses[i][:3, :3].T + seq.poses[i][:3, 3] for i in range(len(seq))]
+        ref = np.concatenate(clouds)
+    q = map_quality(m.vertices, m.faces, t.vertices, t.faces, reference_points=ref, tolerance_m=tolerance)
+    for key, value in q.items():
+        typer.echo(f"{key:<32}  {value:.4f}" if isinstance(value, float) else f"{key:<32}  {value}")
+    if json_out:
+        json_out.write_text(json.dumps(q, indent=2))
+
+
 def main() -> None:
     run_app(app, "rangemcl")
 

@@ -73,6 +73,11 @@ def record(
         overwrite=overwrite,
         progress=sys.stderr.isatty(),
     )
+    if s.stuck_at is not None:
+        typer.echo(
+            f"warning: the car got stuck at ({s.stuck_at[0]:.1f}, {s.stuck_at[1]:.1f}); recording stopped",
+            err=True,
+        )
     typer.echo(
         f"wrote {s.frames} frames to {s.out} ({s.seconds_simulated:.1f} s simulated, "
         f"{s.distance_driven_m:.0f} m "

@@ -25,6 +25,7 @@ class RecordSummary:
     route_length_m: float
     distance_driven_m: float
     route_done: bool
+    stuck_at: tuple[float, float] | None = None  # where the car got stuck, if it did
 
 
 def check_writable(out: Path) -> None:
@@ -111,7 +112,10 @@ def record(
             if frame.route_done:
                 summary.route_done = True
                 break
-        writer.update_meta(frames=summary.frames, route_done=summary.route_done)
+            if frame.stuck:
+                summary.stuck_at = tuple(float(c) for c in frame.T_world_sensor[:2, 3])
+                break
+        writer.update_meta(frames=summary.frames, route_done=summary.route_done, stuck_at=summary.stuck_at)
     return summary
 
 

@@ -31,11 +31,22 @@ class RoadGraph:
             adj[int(j)].append(int(i))
         return [sorted(a) for a in adj]
 
-    def shortest_path(self, start: int, goal: int) -> list[int]:
-        """Node path from ``start`` to ``goal`` (fewest metres, Dijkstra)."""
+    def shortest_path(self, start: int, goal: int, came_from: int | None = None) -> list[int]:
+        """Node path from ``start`` to ``goal`` (fewest metres, Dijkstra). With ``came_from``, the path does
+        not begin by driving back to that node (no U-turn) unless there is no other way."""
+        adj = self.neighbours()
+        if came_from is not None and start != goal:
+            forward = [v for v in adj[start] if v != came_from]
+            if forward:
+                try:
+                    return self._dijkstra([*adj[:start], forward, *adj[start + 1 :]], start, goal)
+                except InputError:
+                    pass  # only reachable by turning back
+        return self._dijkstra(adj, start, goal)
+
+    def _dijkstra(self, adj: list[list[int]], start: int, goal: int) -> list[int]:
         import heapq
 
-        adj = self.neighbours()
         dist = {start: 0.0}
         prev: dict[int, int] = {}
         heap = [(0.0, start)]
@@ -91,10 +102,10 @@ def covering_walk(graph: RoadGraph, start: int = 0) -> list[int]:
                     queue.append(v)
         if found is None:  # the rest is unreachable: the graph is not connected
             break
-        path = graph.shortest_path(here, found)
+        path = graph.shortest_path(here, found, came_from=walk[-2] if len(walk) > 1 else None)
         walk.extend(path[1:])
     if walk[-1] != start:
-        walk.extend(graph.shortest_path(walk[-1], start)[1:])
+        walk.extend(graph.shortest_path(walk[-1], start, came_from=walk[-2] if len(walk) > 1 else None)[1:])
     return walk
 
 

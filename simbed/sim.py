@@ -28,6 +28,7 @@ class Frame:
     time_s: float
     speed_mps: float
     route_done: bool
+    stuck: bool = False  # the car made no progress along its route for 10 s
 
 
 class Drive:
@@ -117,6 +118,7 @@ class Drive:
             time_s=sweep.t_end - self.t0,
             speed_mps=self.car.speed(world.data),
             route_done=self.controller.done,
+            stuck=self.controller.stuck,
         )
         self.frame_index += 1
         if not np.isfinite(world.data.qpos).all():

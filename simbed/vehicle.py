@@ -131,6 +131,10 @@ class RouteFollower:
         self.index = 0
         self.integral = 0.0
         self.done = False
+        self.stuck = False  # no progress along the route for `stuck_after_s` of driving
+        self.stuck_after_s = 10.0
+        self._time = 0.0
+        self._progress_mark = (0.0, 0.0)  # (time, progress) when progress last grew by a metre
 
     @property
     def progress_m(self) -> float:
@@ -154,6 +158,11 @@ class RouteFollower:
         T = self.car.pose(data)
         xy, yaw = T[:2, 3], yaw_of(T[:3, :3])
         self._advance(xy)
+        self._time += dt
+        if self.progress_m > self._progress_mark[1] + 1.0:
+            self._progress_mark = (self._time, self.progress_m)
+        elif not self.done and self._time - self._progress_mark[0] > self.stuck_after_s:
+            self.stuck = True
         speed = self.car.speed(data)
         if self.cumlen[-1] - self.cumlen[self.index] < 3.0:
             self.done = True

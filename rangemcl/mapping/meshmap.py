@@ -1,0 +1,777 @@
+"""The mesh map the localizer renders from: a triangle mesh in the world frame, its ground labels, a tiling
+and a ground-height grid, and the map folder they live in.
+
+A map folder holds::
+
+    mesh.ply     binary little-endian PLY: float64 x, y, z and uchar red, green, blue per vertex (ground
+                 (128, 128, 128), everything else (200, 120, 60)); int32 triangle indices
+    tiles.npz    tile_size_m, tile_origin_xy (2,), tiles (T, 2) int32 (i, j), face_tile (F,) int32
+    ground.npz   origin_xy (2,), cell_m, heights (ny, nx) float32 (NaN: no ground seen in that cell)
+    map.yaml     format, format_version, counts, tile size, extent and ``meta`` (frame, sensor height,
+                 build parameters, source, created_by …)
+
+Every file is written to a temporary file in the folder and renamed into place; ``map.yaml`` goes last.
+
+Tiles: square cells of ``tile_size_m`` whose grid starts at ``tile_origin_xy`` (the mesh's minimum x, y
+floored to a multiple of the tile size). Tile (i, j) covers ``[ox + i·s, ox + (i+1)·s) × [oy + j·s, oy +
+(j+1)·s)``. Each face belongs to exactly one tile: the one holding its centroid (faces that straddle a
+border are not split or duplicated). Only tiles that hold a face exist; ``tiles`` lists them sorted by
+(i, j).
+
+Ground labels, when none are given (:func:`label_ground_vertices`): a vertex is ground when (1) the sum of
+the normals of its faces, each weighted by the face's area and flipped to point up (so a mesh's winding
+does not matter), lies within 30° of +z, and (2) it lies within 0.3 m of the lowest vertex of its 1 m × 1 m
+xy cell. Rule (2) keeps roofs and tops of walls out wherever the ground under or beside them is in the
+same cell; a large flat roof with no ground vertex in its cells (e.g. the top of a car over unseen ground)
+is labelled ground.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from rangemcl.errors import InputError
+from rangemcl.yamlio import parse_yaml
+
+FORMAT_NAME = "rangemcl-mesh-map"
+FORMAT_VERSION = 1
+GROUND_RGB = (128, 128, 128)
+NON_GROUND_RGB = (200, 120, 60)
+MAP_FILES = ("mesh.ply", "tiles.npz", "ground.npz", "map.yaml")
+
+# Grids with more cells than this are coarsened (4 bytes a cell: 100 MB), e.g. a ground grid for a
+# mesh with a stray vertex kilometres away.
+MAX_GROUND_CELLS = 25_000_000
+
+
+# ---------------------------------------------------------------------------------------------- ground grid
+
+
+@dataclass(eq=False)
+class GroundGrid:
+    """Ground height lookup: the map's ground z at any x, y (the localizer puts particles at this height
+    plus the sensor's mounting height).
+
+    ``heights[j, i]`` is the ground height measured in the cell ``[ox + i·c, ox + (i+1)·c) × [oy + j·c,
+    oy + (j+1)·c)`` (row = y, column = x), NaN where no ground was seen. Queries interpolate bilinearly
+    between cell centres; unmeasured cells take the value of the nearest measured cell (filled once, here),
+    and points outside the grid take the value at the nearest edge. With no measured cell at all every
+    query is NaN.
+    """
+
+    origin_xy: np.ndarray  # (2,) world x, y of cell (0, 0)'s lower-left corner
+    cell_m: float
+    heights: np.ndarray  # (ny, nx) float32, NaN where no ground was seen
+    measured: np.ndarray = field(init=False, repr=False)  # (ny, nx) bool
+    filled: np.ndarray = field(init=False, repr=False)  # (ny, nx) float64, NaN only if nothing measured
+
+    def __post_init__(self) -> None:
+        self.origin_xy = np.asarray(self.origin_xy, np.float64).reshape(2)
+        self.cell_m = float(self.cell_m)
+        self.heights = np.asarray(self.heights, np.float32)
+        if self.heights.ndim != 2 or self.heights.size == 0:
+            raise ValueError(f"ground heights must be a non-empty 2-D array, got shape {self.heights.shape}")
+        if not (math.isfinite(self.cell_m) and self.cell_m > 0):
+            raise ValueError(f"ground cell size must be positive, got {self.cell_m}")
+        self.measured = np.isfinite(self.heights)
+        filled = self.heights.astype(np.float64)
+        if self.measured.any() and not self.measured.all():
+            from scipy.ndimage import distance_transform_edt
+
+            idx = distance_transform_edt(~self.measured, return_distances=False, return_indices=True)
+            filled = filled[idx[0], idx[1]]
+        self.filled = filled
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.heights.shape
+
+    def height_at(self, x, y) -> np.ndarray:
+        """Ground z at world ``x, y`` (arrays broadcast together), float64."""
+        x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
+        ny, nx = self.filled.shape
+        fx = np.clip((x - self.origin_xy[0]) / self.cell_m - 0.5, 0.0, nx - 1.0)
+        fy = np.clip((y - self.origin_xy[1]) / self.cell_m - 0.5, 0.0, ny - 1.0)
+        fx = np.nan_to_num(fx, nan=0.0)  # NaN queries get NaN below, not an index error
+        fy = np.nan_to_num(fy, nan=0.0)
+        i0 = np.minimum(np.floor(fx).astype(np.intp), max(nx - 2, 0))
+        j0 = np.minimum(np.floor(fy).astype(np.intp), max(ny - 2, 0))
+        i1 = np.minimum(i0 + 1, nx - 1)
+        j1 = np.minimum(j0 + 1, ny - 1)
+        tx = fx - i0
+        ty = fy - j0
+        h = self.filled
+        z = (1 - ty) * ((1 - tx) * h[j0, i0] + tx * h[j0, i1]) + ty * ((1 - tx) * h[j1, i0] + tx * h[j1, i1])
+        return np.where(np.isfinite(x) & np.isfinite(y), z, np.nan)
+
+    @classmethod
+    def from_vertices(cls, vertices, is_ground, cell_m: float = 1.0) -> GroundGrid:
+        """The median z of the ground vertices in each cell, on a grid that covers all ``vertices`` in x, y.
+
+        The grid is coarsened (``cell_m`` multiplied by a whole number) when it would have more than
+        ``MAX_GROUND_CELLS`` cells.
+        """
+        v = np.asarray(vertices, np.float64).reshape(-1, 3)
+        g = np.asarray(is_ground, bool).reshape(-1)
+        if len(v) == 0:
+            raise ValueError("no vertices to build a ground grid from")
+        cell_m = float(cell_m)
+        lo, hi = v[:, :2].min(axis=0), v[:, :2].max(axis=0)
+        while True:
+            origin = np.floor(lo / cell_m) * cell_m
+            n = np.floor((hi - origin) / cell_m).astype(np.int64) + 1  # (nx, ny)
+            if n[0] * n[1] <= MAX_GROUND_CELLS:
+                break
+            cell_m *= math.ceil(math.sqrt(n[0] * n[1] / MAX_GROUND_CELLS))
+        nx, ny = int(n[0]), int(n[1])
+        heights = np.full((ny, nx), np.nan, np.float32)
+        pg = v[g]
+        if len(pg):
+            ij = np.floor((pg[:, :2] - origin) / cell_m).astype(np.int64)
+            ij = np.clip(ij, 0, [nx - 1, ny - 1])  # rounding at the far edge
+            cell = ij[:, 1] * nx + ij[:, 0]
+            order = np.lexsort((pg[:, 2], cell))
+            cell, z = cell[order], pg[order, 2]
+            starts = np.flatnonzero(np.r_[True, cell[1:] != cell[:-1]])
+            counts = np.diff(np.r_[starts, len(cell)])
+            median = 0.5 * (z[starts + (counts - 1) // 2] + z[starts + counts // 2])
+            heights.reshape(-1)[cell[starts]] = median
+        return cls(origin, cell_m, heights)
+
+
+# ---------------------------------------------------------------------------------------------- ground labels
+
+
+def label_ground_vertices(
+    vertices, faces, *, max_angle_deg: float = 30.0, cell_m: float = 1.0, layer_m: float = 0.3
+) -> np.ndarray:
+    """Ground labels ``(V,)`` bool for a mesh by the rule in the module docstring."""
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    nv = len(v)
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    n = np.cross(b - a, c - a)  # (F, 3), length = 2 · area
+    n *= np.where(n[:, 2] < 0, -1.0, 1.0)[:, None]
+    vn = np.stack(
+        [sum(np.bincount(f[:, k], weights=n[:, d], minlength=nv) for k in range(3)) for d in range(3)],
+        axis=1,
+    )  # (V, 3)
+    norm = np.linalg.norm(vn, axis=1)
+    flat = (norm > 0) & (vn[:, 2] >= math.cos(math.radians(max_angle_deg)) * norm)
+    used = np.zeros(nv, bool)
+    used[f.reshape(-1)] = True
+    ij = np.floor(v[:, :2] / cell_m)
+    _, cell = np.unique(_tile_keys(ij[:, 0], ij[:, 1]), return_inverse=True)
+    lowest = np.full(cell.max() + 1, np.inf)
+    np.minimum.at(lowest, cell[used], v[used, 2])
+    return flat & used & (v[:, 2] <= lowest[cell] + layer_m)
+
+
+# ---------------------------------------------------------------------------------------------- the map
+
+
+@dataclass(eq=False)
+class MeshMap:
+    """A triangle-mesh map in the world frame, tiled (see the module docstring).
+
+    Build one with :meth:`from_mesh` (validates and tiles), :meth:`load` or :func:`import_mesh`.
+    """
+
+    vertices: np.ndarray  # (V, 3) float64, world frame
+    faces: np.ndarray  # (F, 3) int32
+    is_ground: np.ndarray  # (V,) bool
+    tile_size_m: float
+    tile_origin_xy: np.ndarray  # (2,)
+    face_tile: np.ndarray  # (F,) int32 index into `tiles`
+    tiles: np.ndarray  # (T, 2) int32 (i, j)
+    ground: GroundGrid
+    meta: dict = field(default_factory=dict)
+    source_dir: Path | None = field(default=None, repr=False)  # the folder it was loaded from
+
+    def __post_init__(self) -> None:
+        self.vertices = np.asarray(self.vertices, np.float64)
+        self.faces = np.asarray(self.faces, np.int32)
+        self.is_ground = np.asarray(self.is_ground, bool)
+        self.tile_size_m = float(self.tile_size_m)
+        self.tile_origin_xy = np.asarray(self.tile_origin_xy, np.float64).reshape(2)
+        self.face_tile = np.asarray(self.face_tile, np.int32)
+        self.tiles = np.asarray(self.tiles, np.int32).reshape(-1, 2)
+        # faces grouped by tile: faces of tile k are _face_order[_tile_start[k]:_tile_start[k + 1]]
+        self._face_order = np.argsort(self.face_tile, kind="stable")
+        self._tile_start = np.searchsorted(self.face_tile[self._face_order], np.arange(len(self.tiles) + 1))
+        keys = _tile_keys(self.tiles[:, 0], self.tiles[:, 1])
+        self._key_order = np.argsort(keys)
+        self._keys_sorted = keys[self._key_order]
+
+    # --- building ---------------------------------------------------------------------------------------
+
+    @classmethod
+    def from_mesh(
+        cls,
+        vertices,
+        faces,
+        is_ground=None,
+        *,
+        tile_size_m: float = 100.0,
+        ground_cell_m: float = 1.0,
+        meta: dict | None = None,
+    ) -> MeshMap:
+        """Validate a triangle mesh, label its ground (rule in the module docstring when ``is_ground`` is
+        None), tile it and grid its ground. Problems are an :class:`InputError` naming them."""
+        v, f = _validate_mesh(vertices, faces)
+        meta = dict(meta or {})
+        if is_ground is None:
+            g = label_ground_vertices(v, f)
+            meta.setdefault("ground_labels", "rule: up-facing normal within 30 deg, lowest 0.3 m of 1 m cell")
+        else:
+            g = np.asarray(is_ground)
+            if g.shape != (len(v),):
+                raise InputError(f"mesh: is_ground has shape {g.shape}, expected ({len(v)},)")
+            g = g.astype(bool)
+        for name, value in (("tile_size_m", tile_size_m), ("ground_cell_m", ground_cell_m)):
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise InputError(f"mesh: {name} must be a positive number, got {value!r}")
+        tile_size_m = float(tile_size_m)
+        origin = np.floor(v[:, :2].min(axis=0) / tile_size_m) * tile_size_m
+        ij = face_tile_ij(v, f, origin, tile_size_m)
+        keys, face_tile = np.unique(_tile_keys(ij[:, 0], ij[:, 1]), return_inverse=True)
+        tiles = _tile_ij(keys)  # sorted by (i, j), as the keys are
+        return cls(
+            vertices=v,
+            faces=f,
+            is_ground=g,
+            tile_size_m=tile_size_m,
+            tile_origin_xy=origin,
+            face_tile=face_tile.reshape(-1).astype(np.int32),
+            tiles=tiles.astype(np.int32),
+            ground=GroundGrid.from_vertices(v, g, ground_cell_m),
+            meta=meta,
+        )
+
+    # --- tiles ------------------------------------------------------------------------------------------
+
+    def tile_faces(self, tile_ids) -> np.ndarray:
+        """Indices (ascending, no duplicates) of the faces in the given tiles (indices into ``tiles``)."""
+        ids = np.unique(np.asarray(tile_ids, np.int64).reshape(-1))
+        bad = ids[(ids < 0) | (ids >= len(self.tiles))]
+        if len(bad):
+            raise IndexError(f"tile index {bad[0]} out of range 0..{len(self.tiles) - 1}")
+        parts = [self._face_order[self._tile_start[k] : self._tile_start[k + 1]] for k in ids]
+        return np.sort(np.concatenate(parts)) if parts else np.zeros(0, np.intp)
+
+    def tile_at(self, x, y) -> np.ndarray:
+        """Index into ``tiles`` of the tile holding each world ``x, y``; -1 outside every non-empty tile."""
+        x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
+        ok = np.isfinite(x) & np.isfinite(y)
+        i = np.floor((np.where(ok, x, 0.0) - self.tile_origin_xy[0]) / self.tile_size_m)
+        j = np.floor((np.where(ok, y, 0.0) - self.tile_origin_xy[1]) / self.tile_size_m)
+        keys = _tile_keys(i, j)
+        pos = np.clip(np.searchsorted(self._keys_sorted, keys), 0, max(len(self._keys_sorted) - 1, 0))
+        found = ok & (self._keys_sorted[pos] == keys) if len(self._keys_sorted) else np.zeros_like(ok)
+        return np.where(found, self._key_order[pos], -1).astype(np.int64)
+
+    def tile_bounds(self, k: int) -> tuple[float, float, float, float]:
+        """``(xmin, ymin, xmax, ymax)`` of tile ``k`` (index into ``tiles``)."""
+        i, j = (int(t) for t in self.tiles[k])
+        ox, oy = self.tile_origin_xy
+        s = self.tile_size_m
+        return (ox + i * s, oy + j * s, ox + (i + 1) * s, oy + (j + 1) * s)
+
+    def submesh(self, tile_ids) -> tuple[np.ndarray, np.ndarray]:
+        """``(vertices (n, 3) float64, faces (m, 3) int32)`` of the given tiles, with only the vertices
+        those faces use (in ascending order of their index in the whole map)."""
+        f = self.faces[self.tile_faces(tile_ids)]
+        used, inverse = np.unique(f, return_inverse=True)
+        return self.vertices[used], inverse.reshape(-1, 3).astype(np.int32)
+
+    # --- sizes ------------------------------------------------------------------------------------------
+
+    @property
+    def extent(self) -> tuple[float, float, float, float, float, float]:
+        """``(xmin, ymin, zmin, xmax, ymax, zmax)`` over all vertices."""
+        lo, hi = self.vertices.min(axis=0), self.vertices.max(axis=0)
+        return (*(float(t) for t in lo), *(float(t) for t in hi))
+
+    @property
+    def n_triangles(self) -> int:
+        return len(self.faces)
+
+    @property
+    def n_vertices(self) -> int:
+        return len(self.vertices)
+
+    # --- disk -------------------------------------------------------------------------------------------
+
+    def save(self, map_dir) -> Path:
+        """Write the map folder (created if needed); each file atomically, ``map.yaml`` last."""
+        map_dir = Path(map_dir)
+        try:
+            map_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise InputError(f"cannot write map folder {map_dir}: {err.strerror or err}") from None
+        colours = np.where(self.is_ground[:, None], GROUND_RGB, NON_GROUND_RGB).astype(np.uint8)
+        _atomic_write(
+            map_dir / "mesh.ply", lambda fh: write_ply_binary(fh, self.vertices, self.faces, colours)
+        )
+        _atomic_write(
+            map_dir / "tiles.npz",
+            lambda fh: np.savez(
+                fh,
+                tile_size_m=np.float64(self.tile_size_m),
+                tile_origin_xy=self.tile_origin_xy,
+                tiles=self.tiles,
+                face_tile=self.face_tile,
+            ),
+        )
+        _atomic_write(
+            map_dir / "ground.npz",
+            lambda fh: np.savez(
+                fh,
+                origin_xy=self.ground.origin_xy,
+                cell_m=np.float64(self.ground.cell_m),
+                heights=self.ground.heights,
+            ),
+        )
+        doc = {
+            "format": FORMAT_NAME,
+            "format_version": FORMAT_VERSION,
+            "files": {"mesh": "mesh.ply", "tiles": "tiles.npz", "ground": "ground.npz"},
+            "counts": {
+                "vertices": self.n_vertices,
+                "triangles": self.n_triangles,
+                "ground_vertices": int(self.is_ground.sum()),
+                "tiles": len(self.tiles),
+            },
+            "tile_size_m": self.tile_size_m,
+            "ground_cell_m": self.ground.cell_m,
+            "extent_m": list(self.extent),
+            "meta": _plain(self.meta),
+        }
+        text = yaml.safe_dump(doc, sort_keys=False, allow_unicode=True)
+        _atomic_write(map_dir / "map.yaml", lambda fh: fh.write(text.encode()))
+        return map_dir
+
+    @classmethod
+    def load(cls, map_dir) -> MeshMap:
+        """Read a map folder written by :meth:`save`; any problem is an InputError naming the file."""
+        map_dir = Path(map_dir)
+        if not map_dir.exists():
+            raise InputError(f"{map_dir}: map folder does not exist")
+        if not map_dir.is_dir():
+            raise InputError(f"{map_dir}: not a folder (expected a map folder)")
+        for name in MAP_FILES:
+            if not (map_dir / name).is_file():
+                raise InputError(f"{map_dir / name}: missing (is {map_dir} a map folder?)")
+
+        ypath = map_dir / "map.yaml"
+        doc = parse_yaml(_read_text(ypath), str(ypath))
+        if not isinstance(doc, dict):
+            raise InputError(f"{ypath}: expected a mapping at the top level")
+        version = doc.get("format_version")
+        if version != FORMAT_VERSION or isinstance(version, bool):
+            raise InputError(
+                f"{ypath}: format_version {version!r} is not supported (expected {FORMAT_VERSION})"
+            )
+        counts = doc.get("counts")
+        if not isinstance(counts, dict) or not all(
+            isinstance(counts.get(k), int) for k in ("vertices", "triangles", "ground_vertices", "tiles")
+        ):
+            raise InputError(
+                f"{ypath}: 'counts' must map vertices, triangles, ground_vertices, tiles to integers"
+            )
+        meta = doc.get("meta") or {}
+        if not isinstance(meta, dict):
+            raise InputError(f"{ypath}: 'meta' must be a mapping")
+
+        ppath = map_dir / "mesh.ply"
+        vertices, faces, colours = read_ply_binary(ppath)
+        if colours is None:
+            raise InputError(f"{ppath}: vertices have no red, green, blue colours (the ground labels)")
+        is_ground = np.all(colours == GROUND_RGB, axis=1)
+        for what, found, key in (
+            ("vertices", len(vertices), "vertices"),
+            ("triangles", len(faces), "triangles"),
+            ("ground vertices", int(is_ground.sum()), "ground_vertices"),
+        ):
+            if found != counts[key]:
+                raise InputError(f"{ppath}: has {found} {what} but {ypath.name} says {counts[key]}")
+        try:
+            v, f = _validate_mesh(vertices, faces)
+        except InputError as err:
+            raise InputError(f"{ppath}: {str(err).removeprefix('mesh: ')}") from None
+
+        tpath = map_dir / "tiles.npz"
+        t = _read_npz(
+            tpath, {"tile_size_m": (), "tile_origin_xy": (2,), "tiles": (-1, 2), "face_tile": (-1,)}
+        )
+        tile_size = float(t["tile_size_m"])
+        if not (math.isfinite(tile_size) and tile_size > 0):
+            raise InputError(f"{tpath}: tile_size_m must be positive, got {tile_size}")
+        if len(t["face_tile"]) != len(f):
+            raise InputError(
+                f"{tpath}: face_tile has {len(t['face_tile'])} entries but mesh.ply has {len(f)} faces"
+            )
+        if len(t["tiles"]) != counts["tiles"]:
+            raise InputError(f"{tpath}: has {len(t['tiles'])} tiles but {ypath.name} says {counts['tiles']}")
+        face_tile = t["face_tile"].astype(np.int64)
+        if len(face_tile) and (face_tile.min() < 0 or face_tile.max() >= len(t["tiles"])):
+            raise InputError(f"{tpath}: face_tile indices out of range 0..{len(t['tiles']) - 1}")
+        origin = t["tile_origin_xy"].astype(np.float64)
+        if not np.array_equal(t["tiles"][face_tile], face_tile_ij(v, f, origin, tile_size)):
+            raise InputError(f"{tpath}: the tiling does not match the faces' centroids in mesh.ply")
+
+        gpath = map_dir / "ground.npz"
+        gz = _read_npz(gpath, {"origin_xy": (2,), "cell_m": (), "heights": (-1, -1)})
+        try:
+            ground = GroundGrid(gz["origin_xy"], float(gz["cell_m"]), gz["heights"])
+        except ValueError as err:
+            raise InputError(f"{gpath}: {err}") from None
+
+        return cls(
+            vertices=v,
+            faces=f,
+            is_ground=is_ground,
+            tile_size_m=tile_size,
+            tile_origin_xy=origin,
+            face_tile=face_tile,
+            tiles=t["tiles"],
+            ground=ground,
+            meta=meta,
+            source_dir=map_dir,
+        )
+
+
+def face_tile_ij(vertices: np.ndarray, faces: np.ndarray, origin_xy, tile_size_m: float) -> np.ndarray:
+    """``(F, 2)`` int64 tile grid indices (i, j) of each face's centroid."""
+    tri = vertices[faces]  # (F, 3, 3)
+    centroid = (tri[:, 0, :2] + tri[:, 1, :2] + tri[:, 2, :2]) / 3.0
+    return np.floor((centroid - np.asarray(origin_xy, np.float64)) / tile_size_m).astype(np.int64)
+
+
+def _tile_keys(i, j) -> np.ndarray:
+    """One sortable int64 per (i, j) grid index pair (indices clipped to ±2**30)."""
+    lim = 2**30
+    i = np.clip(np.asarray(i, np.float64), -lim, lim - 1).astype(np.int64) + lim
+    j = np.clip(np.asarray(j, np.float64), -lim, lim - 1).astype(np.int64) + lim
+    return i * (2 * lim) + j
+
+
+def _tile_ij(keys: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`_tile_keys`: ``(n, 2)`` int64 (i, j)."""
+    lim = 2**30
+    return np.stack([keys // (2 * lim) - lim, keys % (2 * lim) - lim], axis=1)
+
+
+def _validate_mesh(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
+    """Checked ``(vertices float64 (V, 3), faces int32 (F, 3))`` or an InputError naming the problem."""
+    v = np.asarray(vertices)
+    f = np.asarray(faces)
+    if v.size == 0 or f.size == 0:
+        raise InputError(f"mesh: empty mesh ({len(v)} vertices, {len(f)} triangles)")
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise InputError(f"mesh: vertices must have shape (V, 3), got {v.shape}")
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise InputError(f"mesh: faces must have shape (F, 3) (triangles), got {f.shape}")
+    if not np.issubdtype(v.dtype, np.number):
+        raise InputError(f"mesh: vertices must be numbers, got {v.dtype}")
+    whole = np.issubdtype(f.dtype, np.floating) and np.all(f == np.round(f))
+    if not (np.issubdtype(f.dtype, np.integer) or whole):
+        raise InputError(f"mesh: face indices must be integers, got {f.dtype}")
+    v = v.astype(np.float64)
+    bad = ~np.isfinite(v).all(axis=1)
+    if bad.any():
+        raise InputError(
+            f"mesh: {int(bad.sum())} vertices are NaN or infinite (first: vertex {np.argmax(bad)})"
+        )
+    f64 = f.astype(np.int64)
+    if f64.min() < 0 or f64.max() >= len(v):
+        raise InputError(f"mesh: face indices out of range 0..{len(v) - 1} (found {f64.min()}..{f64.max()})")
+    tri = v[f64]
+    area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    if not (area2 > 0).any():
+        raise InputError(f"mesh: all {len(f)} triangles are degenerate (zero area)")
+    return v, f64.astype(np.int32)
+
+
+# ---------------------------------------------------------------------------------------------- import
+
+
+def import_mesh(path, *, tile_size_m: float = 100.0, is_ground=None, meta: dict | None = None) -> MeshMap:
+    """A map from any triangle mesh file trimesh reads (PLY, OBJ, STL, …; e.g. published range-mcl maps).
+
+    Ground labels: ``is_ground`` when given; else the vertex colours when every vertex is coloured either
+    our ground or our non-ground colour (a mesh written by :meth:`MeshMap.save`); else the rule of
+    :func:`label_ground_vertices`. ``meta`` is merged over ``source_mesh`` and ``created_by``. Errors name
+    the file.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: mesh file does not exist")
+    if not path.is_file():
+        raise InputError(f"{path}: not a file")
+    import trimesh
+
+    try:
+        mesh = trimesh.load(str(path), force="mesh", process=False)
+    except Exception as err:  # trimesh raises anything on a broken file
+        why = " ".join(str(err).split()) or type(err).__name__
+        raise InputError(f"{path}: cannot read as a triangle mesh: {why}") from None
+    faces = getattr(mesh, "faces", None)
+    if faces is None or len(faces) == 0:
+        raise InputError(f"{path}: holds no triangles (a point cloud or an empty mesh?)")
+    vertices = np.asarray(mesh.vertices, np.float64)
+    base = {"source_mesh": str(path), "created_by": "rangemcl import-mesh"}
+    if is_ground is None:
+        rgb = _vertex_rgb(mesh)
+        if rgb is not None and len(rgb) == len(vertices):
+            ground = np.all(rgb == GROUND_RGB, axis=1)
+            if np.all(ground | np.all(rgb == NON_GROUND_RGB, axis=1)):
+                is_ground = ground
+                base["ground_labels"] = "vertex colours"
+    try:
+        return MeshMap.from_mesh(
+            vertices, np.asarray(faces), is_ground, tile_size_m=tile_size_m, meta={**base, **(meta or {})}
+        )
+    except InputError as err:
+        raise InputError(f"{path}: {str(err).removeprefix('mesh: ')}") from None
+
+
+def _vertex_rgb(mesh) -> np.ndarray | None:
+    visual = getattr(mesh, "visual", None)
+    if visual is None or getattr(visual, "kind", None) != "vertex":
+        return None
+    return np.asarray(visual.vertex_colors)[:, :3].astype(np.uint8)
+
+
+# ---------------------------------------------------------------------------------------------- summary
+
+
+def map_summary(m: MeshMap) -> dict[str, Any]:
+    """Plain figures about a map for ``rangemcl map-info`` (keys in print order)."""
+    xmin, ymin, zmin, xmax, ymax, zmax = m.extent
+    g = m.ground
+    out: dict[str, Any] = {}
+    if m.source_dir is not None:
+        out["map_dir"] = str(m.source_dir)
+    out["size_m"] = f"{xmax - xmin:.1f} x {ymax - ymin:.1f} x {zmax - zmin:.1f}"
+    out["extent_m"] = f"x [{xmin:.2f}, {xmax:.2f}]  y [{ymin:.2f}, {ymax:.2f}]  z [{zmin:.2f}, {zmax:.2f}]"
+    out["triangles"] = m.n_triangles
+    out["vertices"] = m.n_vertices
+    out["ground_vertex_share"] = round(float(m.is_ground.mean()), 4)
+    out["ground_triangle_share"] = round(float(m.is_ground[m.faces].all(axis=1).mean()), 4)
+    out["tiles"] = len(m.tiles)
+    out["tile_size_m"] = m.tile_size_m
+    per_tile = np.bincount(m.face_tile, minlength=len(m.tiles))
+    out["triangles_per_tile"] = (
+        f"min {per_tile.min()}, median {int(np.median(per_tile))}, max {per_tile.max()}"
+    )
+    ny, nx = g.shape
+    out["ground_grid"] = f"{nx} x {ny} cells of {g.cell_m:g} m, {g.measured.mean():.0%} measured"
+    if m.source_dir is not None:
+        out["bytes_on_disk"] = sum(
+            (m.source_dir / n).stat().st_size for n in MAP_FILES if (m.source_dir / n).is_file()
+        )
+    for key in (
+        "frame",
+        "sensor_height_m",
+        "created_by",
+        "source_sequence",
+        "source_mesh",
+        "scene",
+        "sensor",
+    ):
+        if m.meta.get(key) is not None:
+            out[key] = m.meta[key]
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- PLY
+
+
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}  # fmt: skip
+
+
+def write_ply_binary(fh, vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray | None = None) -> None:
+    """Binary little-endian PLY: float64 x, y, z (+ uchar red, green, blue), int32 triangle indices."""
+    header = [
+        "ply",
+        "format binary_little_endian 1.0",
+        "comment rangemcl mesh map",
+        f"element vertex {len(vertices)}",
+    ]
+    header += [f"property double {c}" for c in "xyz"]
+    vfields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
+    if colours is not None:
+        header += [f"property uchar {c}" for c in ("red", "green", "blue")]
+        vfields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    header += [f"element face {len(faces)}", "property list uchar int vertex_indices", "end_header"]
+    vrec = np.empty(len(vertices), vfields)
+    for k, c in enumerate("xyz"):
+        vrec[c] = vertices[:, k]
+    if colours is not None:
+        for k, c in enumerate(("red", "green", "blue")):
+            vrec[c] = colours[:, k]
+    frec = np.empty(len(faces), [("n", "u1"), ("idx", "<i4", (3,))])
+    frec["n"] = 3
+    frec["idx"] = faces
+    fh.write(("\n".join(header) + "\n").encode("ascii"))
+    fh.write(vrec.tobytes())
+    fh.write(frec.tobytes())
+
+
+def read_ply_binary(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """``(vertices (V, 3) float64, faces (F, 3) int64, colours (V, 3) uint8 or None)`` of a binary
+    triangle PLY; any problem is an InputError naming the file."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError as err:
+        raise InputError(f"{path}: cannot read: {err.strerror or err}") from None
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply"):
+        raise InputError(f"{path}: not a PLY file (it does not start with 'ply')")
+    if end < 0:
+        raise InputError(f"{path}: truncated in the header (no 'end_header')")
+    nl = data.find(b"\n", end)
+    if nl < 0:
+        raise InputError(f"{path}: truncated in the header")
+    body = memoryview(data)[nl + 1 :]
+    try:
+        lines = data[:end].decode("ascii").splitlines()
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: PLY header is not ASCII text") from None
+    order = None
+    # (name, count, [(property, dtype) or (property, (count dtype, item dtype))])
+    elements: list[tuple[str, int, list]] = []
+    for raw in lines[1:]:
+        words = raw.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        try:
+            if words[0] == "format":
+                order = {"binary_little_endian": "<", "binary_big_endian": ">"}.get(words[1], "?")
+            elif words[0] == "element":
+                elements.append((words[1], int(words[2]), []))
+            elif words[0] == "property" and words[1] == "list":
+                elements[-1][2].append((words[4], (_PLY_TYPES[words[2]], _PLY_TYPES[words[3]])))
+            elif words[0] == "property":
+                elements[-1][2].append((words[2], _PLY_TYPES[words[1]]))
+            else:
+                raise ValueError
+        except (IndexError, KeyError, ValueError):
+            raise InputError(f"{path}: bad PLY header line {raw.strip()!r}") from None
+    if order is None:
+        raise InputError(f"{path}: PLY header has no 'format' line")
+    if order == "?":
+        raise InputError(f"{path}: only binary PLY is supported here (import other meshes with import-mesh)")
+    vertices = faces = colours = None
+    offset = 0
+    for name, count, props in elements:
+        if count < 0:
+            raise InputError(f"{path}: element {name} has a negative count")
+        fields = []
+        for prop, t in props:
+            if isinstance(t, tuple):
+                if name != "face":
+                    raise InputError(f"{path}: list property in element '{name}' is not supported")
+                fields += [(prop + "_n", order + t[0]), (prop, order + t[1], (3,))]
+            else:
+                fields.append((prop, order + t))
+        dt = np.dtype(fields)
+        nbytes = dt.itemsize * count
+        if offset + nbytes > len(body):
+            raise InputError(
+                f"{path}: truncated: element '{name}' needs {nbytes} bytes at offset {offset}, "
+                f"only {max(len(body) - offset, 0)} left"
+            )
+        rec = np.frombuffer(body, dt, count, offset)
+        offset += nbytes
+        names = dt.names or ()
+        if name == "vertex":
+            if not {"x", "y", "z"} <= set(names):
+                raise InputError(f"{path}: vertex element lacks x, y, z")
+            vertices = np.stack([rec[c].astype(np.float64) for c in "xyz"], axis=1)
+            if {"red", "green", "blue"} <= set(names):
+                colours = np.stack([rec[c].astype(np.uint8) for c in ("red", "green", "blue")], axis=1)
+        elif name == "face":
+            lists = [p for p, t in props if isinstance(t, tuple)]
+            if len(lists) != 1:
+                raise InputError(f"{path}: face element must have exactly one list property")
+            if count and np.any(rec[lists[0] + "_n"] != 3):
+                raise InputError(f"{path}: faces are not all triangles")
+            faces = rec[lists[0]].astype(np.int64).reshape(-1, 3)
+    if offset != len(body):
+        raise InputError(f"{path}: {len(body) - offset} bytes after the last element (counts disagree?)")
+    if vertices is None or faces is None:
+        raise InputError(f"{path}: PLY needs a 'vertex' and a 'face' element")
+    return vertices, faces, colours
+
+
+# ---------------------------------------------------------------------------------------------- file helpers
+
+
+def _atomic_write(path: Path, write) -> None:
+    tmp = None
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        with os.fdopen(fd, "wb") as fh:
+            write(fh)
+        os.replace(tmp, path)
+    except OSError as err:
+        if tmp is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+        raise InputError(f"cannot write {path}: {err.strerror or err}") from None
+
+
+def _read_text(path: Path) -> str:
+    try:
+        return path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        raise InputError(f"{path}: cannot read: {getattr(err, 'strerror', None) or err}") from None
+
+
+def _read_npz(path: Path, shapes: dict[str, tuple]) -> dict[str, np.ndarray]:
+    """The named arrays of an npz file, checked against shapes (-1: any length)."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            out = {k: z[k] for k in shapes if k in z.files}
+    except Exception as err:  # zipfile, pickle and format errors all mean a broken file
+        raise InputError(f"{path}: cannot read: {' '.join(str(err).split()) or type(err).__name__}") from None
+    for key, shape in shapes.items():
+        if key not in out:
+            raise InputError(f"{path}: lacks the array '{key}'")
+        a = out[key]
+        if a.ndim != len(shape) or any(s not in (-1, n) for s, n in zip(shape, a.shape, strict=True)):
+            raise InputError(f"{path}: '{key}' has shape {a.shape}, expected {shape}")
+        if not np.issubdtype(a.dtype, np.number):
+            raise InputError(f"{path}: '{key}' is not numeric ({a.dtype})")
+    return out
+
+
+def _plain(x):
+    """Meta as plain YAML types (numpy scalars and arrays, paths and tuples converted)."""
+    if isinstance(x, dict):
+        return {str(k): _plain(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_plain(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _plain(x.tolist())
+    if isinstance(x, np.generic):
+        return x.item()
+    if x is None or isinstance(x, bool | int | float | str):
+        return x
+    return str(x)

@@ -1,0 +1,376 @@
+"""``rangemcl build-map``: a recorded drive (KITTI layout, with poses) to a tiled mesh map.
+
+Reads like the method: per scan, range-image normals and ground labels; all scans into the world frame,
+cut into tiles (each with a margin) on disk so memory does not grow with the drive; per tile, Poisson
+reconstruction, trimming, cropping to the tile and ground simplification, as independent jobs on all
+cores; the tiles merged into one :class:`MeshMap`, written with the effective config and a report.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import shutil
+import tempfile
+import time
+from collections import defaultdict
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from rangemcl.config import write_config
+from rangemcl.dataset import Sequence, load_sequence
+from rangemcl.errors import InputError
+from rangemcl.mapping.ground import label_ground
+from rangemcl.mapping.meshmap import MeshMap
+from rangemcl.mapping.normals import scan_normals
+from rangemcl.mapping.poisson import poisson_mesh, transfer_labels
+from rangemcl.mapping.simplify import simplify_ground
+from rangemcl.rangeimage import RangeImageGeometry
+from rangemcl.sensors import spec_from_dict
+
+# ---------------------------------------------------------------------------------------------- settings
+
+
+@dataclass
+class ScanSettings:
+    min_range_m: float = 1.5  # drop returns this close (the car's own surroundings, spray)
+    max_range_m: float = 40.0  # the reference code crops scans to ±30 m; sparse far returns mesh badly
+    every_nth: int = 1  # use every n-th scan
+    max_edge_m: float = 1.0  # neighbour distance beyond which a pixel's normal is a depth edge
+    drop_dynamic_labels: bool = False  # simulator-only: drop points labelled as moving actors
+
+
+@dataclass
+class GroundSettings:
+    max_angle_deg: float = 30.0  # n · e3 > cos(30°)
+    z_margin_m: float = 1.0  # ground below z = −sensor height + margin (sensor frame)
+    sensor_height_m: float | None = None  # default: the sequence's sensor mount, else 1.73
+
+
+@dataclass
+class ProjectionSettings:  # for sequences without our sensor spec (e.g. KITTI): a paper Eq. 1 grid
+    height: int = 64
+    width: int = 2048
+    fov_up_deg: float = 3.0
+    fov_down_deg: float = -25.0
+
+
+@dataclass
+class PoissonSettings:
+    depth: int = 9
+    density_quantile: float = 0.1
+    max_support_m: float = 0.5
+    voxel_m: float = 0.1  # points per tile are thinned to one per voxel before reconstruction
+
+
+@dataclass
+class SimplifySettings:
+    enabled: bool = True
+    voxel_m: float = 1.0
+    smooth_iterations: int = 1
+
+
+@dataclass
+class TileSettings:
+    size_m: float = 100.0
+    margin_m: float = 10.0
+
+
+@dataclass
+class MapSettings:
+    scans: ScanSettings = field(default_factory=ScanSettings)
+    ground: GroundSettings = field(default_factory=GroundSettings)
+    projection: ProjectionSettings = field(default_factory=ProjectionSettings)
+    poisson: PoissonSettings = field(default_factory=PoissonSettings)
+    simplify: SimplifySettings = field(default_factory=SimplifySettings)
+    tiles: TileSettings = field(default_factory=TileSettings)
+    workers: int = 0  # tile jobs in parallel (0 = all cores)
+
+
+# ---------------------------------------------------------------------------------------------- report
+
+
+@dataclass
+class BuildReport:
+    scans_total: int = 0
+    scans_used: int = 0
+    scans_skipped_empty: int = 0  # no valid point after filtering
+    points_nonfinite: int = 0  # NaN / inf points removed
+    points_dynamic_dropped: int = 0
+    points_used: int = 0
+    tiles: int = 0
+    triangles_before_simplify: int = 0
+    triangles: int = 0
+    ground_triangles_before: int = 0
+    ground_triangles_after: int = 0
+    seconds: dict = field(default_factory=dict)
+    peak_rss_mb: float = 0.0
+    tile_stats: list = field(default_factory=list)
+
+
+def _peak_rss_mb() -> float:
+    self_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    child_kb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return max(self_kb, child_kb) / 1024.0
+
+
+# ---------------------------------------------------------------------------------------------- stages
+
+
+def scan_geometry(seq: Sequence, settings: MapSettings):
+    """The range-image grid of the sequence's sensor (our recordings) or an Eq. 1 grid (others)."""
+    sensor = seq.meta.get("sensor") if isinstance(seq.meta, dict) else None
+    if sensor:
+        spec = spec_from_dict(sensor, where=f"{seq.root / 'meta.yaml'}: sensor")
+        return spec, RangeImageGeometry.for_spec(spec)
+    p = settings.projection
+    return None, RangeImageGeometry.for_fov(p.height, p.width, p.fov_up_deg, p.fov_down_deg)
+
+
+def oriented_points(seq: Sequence, i: int, spec, geometry, settings: MapSettings, sensor_height_m, report):
+    """One scan's valid points with normals and ground labels, in the world frame (or None)."""
+    s = settings.scans
+    points = seq.scan(i).astype(np.float64)
+    meta = seq.point_meta(i)
+    finite = np.isfinite(points).all(axis=1)
+    report.points_nonfinite += int((~finite).sum())
+    keep = finite.copy()
+    if s.drop_dynamic_labels and "label" in meta:
+        dynamic = meta["label"] != 0
+        report.points_dynamic_dropped += int((dynamic & keep).sum())
+        keep &= ~dynamic
+    rows = cols = None
+    if spec is not None and "ring" in meta and "column" in meta:
+        rows = np.asarray(spec.row_of_beam)[meta["ring"].astype(np.int64)][keep]
+        cols = meta["column"].astype(np.int64)[keep]
+    points = points[keep]
+    if len(points) == 0:
+        return None
+    normals, valid = scan_normals(points, geometry, rows=rows, cols=cols, max_edge_m=s.max_edge_m)
+    r = np.linalg.norm(points, axis=1)
+    valid &= (r >= s.min_range_m) & (r <= s.max_range_m)
+    if not valid.any():
+        return None
+    g = settings.ground
+    ground = label_ground(
+        points,
+        normals,
+        valid,
+        sensor_height_m=sensor_height_m,
+        max_angle_deg=g.max_angle_deg,
+        z_margin_m=g.z_margin_m,
+    )
+    T = seq.poses[i]
+    p_world = points[valid] @ T[:3, :3].T + T[:3, 3]
+    n_world = normals[valid].astype(np.float64) @ T[:3, :3].T
+    return p_world, n_world, ground[valid]
+
+
+class TileSpool:
+    """Points cut into tiles (with a margin) and spooled to disk, so memory stays bounded."""
+
+    def __init__(self, root: Path, tile_m: float, margin_m: float):
+        self.root = root
+        self.tile_m = tile_m
+        self.margin_m = margin_m
+        self.chunks: dict[tuple[int, int], list[Path]] = defaultdict(list)
+
+    def add(self, points: np.ndarray, normals: np.ndarray, ground: np.ndarray) -> None:
+        lo = np.floor((points[:, :2] - self.margin_m) / self.tile_m).astype(np.int64)
+        hi = np.floor((points[:, :2] + self.margin_m) / self.tile_m).astype(np.int64)
+        for ti in range(int(lo[:, 0].min()), int(hi[:, 0].max()) + 1):
+            for tj in range(int(lo[:, 1].min()), int(hi[:, 1].max()) + 1):
+                inside = (lo[:, 0] <= ti) & (ti <= hi[:, 0]) & (lo[:, 1] <= tj) & (tj <= hi[:, 1])
+                if not inside.any():
+                    continue
+                path = self.root / f"tile_{ti}_{tj}_{len(self.chunks[(ti, tj)]):06d}.npz"
+                np.savez(
+                    path,
+                    points=points[inside].astype(np.float64),
+                    normals=normals[inside].astype(np.float32),
+                    ground=ground[inside],
+                )
+                self.chunks[(ti, tj)].append(path)
+
+
+@dataclass
+class TileJob:
+    tile: tuple[int, int]
+    chunks: list[Path]
+    tile_m: float
+    poisson: PoissonSettings
+    simplify: SimplifySettings
+    out: Path
+
+
+def voxel_thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """Indices of one point per occupied voxel (the first in input order)."""
+    keys = np.floor(points / voxel_m).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return np.sort(first)
+
+
+def build_tile(job: TileJob) -> dict:
+    """Poisson mesh of one tile (its points include the margin), cropped to the tile, ground simplified."""
+    t0 = time.perf_counter()
+    parts = [np.load(p) for p in job.chunks]
+    points = np.concatenate([d["points"] for d in parts])
+    normals = np.concatenate([d["normals"] for d in parts]).astype(np.float64)
+    ground = np.concatenate([d["ground"] for d in parts])
+    keep = voxel_thin(points, job.poisson.voxel_m)
+    points, normals, ground = points[keep], normals[keep], ground[keep]
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    ti, tj = job.tile
+    box = (ti * job.tile_m, tj * job.tile_m, (ti + 1) * job.tile_m, (tj + 1) * job.tile_m)
+    p = job.poisson
+    v, f, stats = poisson_mesh(
+        points,
+        normals,
+        depth=p.depth,
+        density_quantile=p.density_quantile,
+        max_support_m=p.max_support_m,
+        crop=box,
+        n_threads=1,  # reproducible (Open3D threads change a few triangles); tiles run in parallel instead
+    )
+    stats = {"tile": [ti, tj], "points": len(points), **{k: v_ for k, v_ in stats.items() if _plain(v_)}}
+    is_ground = transfer_labels(v, points, ground) if len(v) else np.zeros(0, bool)
+    stats["triangles_before_simplify"] = len(f)
+    stats["ground_triangles_before"] = int(is_ground[f].all(axis=1).sum()) if len(f) else 0
+    if job.simplify.enabled and len(f):
+        s = job.simplify
+        v, f, is_ground, _ = simplify_ground(
+            v, f, is_ground, voxel_m=s.voxel_m, smooth_iterations=s.smooth_iterations
+        )
+    stats["triangles"] = len(f)
+    stats["ground_triangles_after"] = int(is_ground[f].all(axis=1).sum()) if len(f) else 0
+    stats["seconds"] = time.perf_counter() - t0
+    np.savez(job.out, vertices=v, faces=f, is_ground=is_ground)
+    return stats
+
+
+def _plain(x) -> bool:
+    return isinstance(x, int | float | str | bool)
+
+
+def build_map(
+    seq_dir: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    settings: MapSettings | None = None,
+    *,
+    progress: bool = False,
+) -> BuildReport:
+    """Build a mesh map from a sequence with poses and write it (mesh, tiles, metadata, config, report)."""
+    settings = settings or MapSettings()
+    out_dir = Path(out_dir)
+    report = BuildReport()
+    clock = time.perf_counter()
+    seq = load_sequence(seq_dir, require_poses=True)
+    spec, geometry = scan_geometry(seq, settings)
+    height = settings.ground.sensor_height_m
+    if height is None:
+        height = float(spec.T_base_sensor[2, 3]) if spec is not None else 1.73
+    _check_out_dir(out_dir)
+    work = Path(tempfile.mkdtemp(prefix="rangemcl-map-"))
+    try:
+        spool = TileSpool(work, settings.tiles.size_m, settings.tiles.margin_m)
+        indices = range(0, len(seq), max(1, settings.scans.every_nth))
+        report.scans_total = len(seq)
+        for i in _progress(indices, progress, "normals and ground"):
+            got = oriented_points(seq, i, spec, geometry, settings, height, report)
+            if got is None:
+                report.scans_skipped_empty += 1
+                continue
+            report.scans_used += 1
+            report.points_used += len(got[0])
+            spool.add(*got)
+        if report.scans_used == 0:
+            raise InputError(f"{seq.root}: no scan has a valid point: nothing to build a map from")
+        report.seconds["scans"] = time.perf_counter() - clock
+        t1 = time.perf_counter()
+        jobs = [
+            TileJob(
+                tile,
+                chunks,
+                settings.tiles.size_m,
+                settings.poisson,
+                settings.simplify,
+                work / f"mesh_{k}.npz",
+            )
+            for k, (tile, chunks) in enumerate(sorted(spool.chunks.items()))
+        ]
+        workers = settings.workers or os.cpu_count() or 1
+        if workers == 1 or len(jobs) == 1:
+            stats = [build_tile(j) for j in _progress(jobs, progress, "tiles")]
+        else:
+            with ProcessPoolExecutor(min(workers, len(jobs))) as pool:
+                stats = list(_progress(pool.map(build_tile, jobs), progress, "tiles", total=len(jobs)))
+        report.seconds["tiles"] = time.perf_counter() - t1
+        report.tile_stats = stats
+        meshes = [np.load(j.out) for j in jobs]
+        vertices, faces, is_ground = _merge([(m["vertices"], m["faces"], m["is_ground"]) for m in meshes])
+        if len(faces) == 0:
+            raise InputError(f"{seq.root}: the reconstruction is empty (too few points with normals)")
+        for key in ("triangles_before_simplify", "ground_triangles_before", "ground_triangles_after"):
+            setattr(report, key, int(sum(s[key] for s in stats)))
+        report.tiles = len(jobs)
+        meta = {
+            "frame": "world (the sequence's poses frame)",
+            "source_sequence": str(Path(seq.root).resolve()),
+            "scene": seq.meta.get("scene") if isinstance(seq.meta, dict) else None,
+            "sensor": spec.name if spec is not None else "unknown (Eq. 1 projection)",
+            "sensor_height_m": height,
+            "scans_used": report.scans_used,
+            "created_by": "rangemcl build-map",
+        }
+        the_map = MeshMap.from_mesh(vertices, faces, is_ground, tile_size_m=settings.tiles.size_m, meta=meta)
+        report.triangles = the_map.n_triangles
+        the_map.save(out_dir)
+        write_config(settings, out_dir / "config.yaml")
+        report.seconds["total"] = time.perf_counter() - clock
+        report.peak_rss_mb = _peak_rss_mb()
+        (out_dir / "report.json").write_text(json.dumps(report.__dict__, indent=2, default=_jsonable))
+        return report
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def _jsonable(x):
+    if isinstance(x, np.integer | np.floating):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    return str(x)
+
+
+def _merge(parts):
+    vs, fs, gs = [], [], []
+    offset = 0
+    for v, f, g in parts:
+        vs.append(v)
+        fs.append(f + offset)
+        gs.append(g)
+        offset += len(v)
+    if not vs:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int32), np.zeros(0, bool)
+    return np.concatenate(vs), np.concatenate(fs).astype(np.int32), np.concatenate(gs).astype(bool)
+
+
+def _check_out_dir(out: Path) -> None:
+    probe = out
+    while not probe.exists():
+        probe = probe.parent
+    if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
+        raise InputError(f"{out}: cannot write the map folder here ({probe} is not a writable folder)")
+
+
+def _progress(items, enabled: bool, label: str, total: int | None = None):
+    if not enabled:
+        yield from items
+        return
+    from rich.progress import track
+
+    yield from track(items, description=label, total=total if total is not None else len(items))

@@ -1,0 +1,441 @@
+"""The mesh map (``rangemcl.mapping.meshmap``): tiling, ground grid, ground labels, disk round trips,
+import, and every error path.
+
+Expected values come from this file: tiles from ``floor((centroid - floor(min / s)·s) / s)`` computed
+here, heights from the analytic plane, PLY files written by trimesh (not by the code under test) and read
+back by trimesh and Open3D.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from rangemcl.errors import InputError
+from rangemcl.mapping.meshmap import (
+    GroundGrid,
+    MeshMap,
+    import_mesh,
+    label_ground_vertices,
+    map_summary,
+    read_ply_binary,
+)
+
+GROUND = (128, 128, 128)
+OTHER = (200, 120, 60)
+
+# --- independent helpers ---------------------------------------------------------------------------------
+
+
+def random_mesh(rng: np.random.Generator, n_faces: int, span: float, offset: np.ndarray):
+    """Random triangles (shared vertices) over ``span`` metres from ``offset``; some long ones straddle."""
+    nv = max(3, n_faces)
+    v = offset + rng.uniform(0, span, (nv, 3)) * [1, 1, 0.02]
+    # small triangles near a random vertex, plus some long ones (vertices anywhere)
+    f = np.array([rng.choice(nv, 3, replace=False) for _ in range(n_faces)])  # (F, 3), distinct corners
+    near = rng.random(n_faces) < 0.7
+    anchors = rng.integers(0, nv, near.sum())
+    extra = v[anchors] + rng.normal(0, 3.0, (near.sum(), 3))
+    v = np.vstack([v, extra])
+    f[near, 1] = nv + np.arange(near.sum())
+    return v, f
+
+
+def grid_plane(nx: int, ny: int, z_of_xy, step: float = 1.0, x0: float = 0.0, y0: float = 0.0):
+    """Vertices at cell centres ``(x0 + (i + .5) step, y0 + (j + .5) step)``, two triangles per quad."""
+    xs = x0 + (np.arange(nx) + 0.5) * step
+    ys = y0 + (np.arange(ny) + 0.5) * step
+    X, Y = np.meshgrid(xs, ys)  # (ny, nx)
+    v = np.stack([X.ravel(), Y.ravel(), z_of_xy(X.ravel(), Y.ravel())], axis=1)
+    idx = np.arange(nx * ny).reshape(ny, nx)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, 1:].ravel(), idx[1:, :-1].ravel()
+    f = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    return v, f
+
+
+def box(lo, hi):
+    """Closed axis-aligned box, outward-facing triangles."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    v = np.array([[x, y, z] for z in (lo[2], hi[2]) for y in (lo[1], hi[1]) for x in (lo[0], hi[0])])
+    f = np.array(
+        [
+            [0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6],  # bottom, top
+            [0, 1, 4], [1, 5, 4], [2, 6, 3], [3, 6, 7],  # y-, y+
+            [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5],  # x-, x+
+        ]
+    )  # fmt: skip
+    return v, f
+
+
+def write_trimesh_ply(path: Path, v, f, rgb=None, encoding="binary"):
+    mesh = trimesh.Trimesh(v, f, vertex_colors=rgb, process=False)
+    path.write_bytes(trimesh.exchange.ply.export_ply(mesh, encoding=encoding))
+
+
+# --- tiles -----------------------------------------------------------------------------------------------
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    n_faces=st.integers(1, 300),
+    tile=st.sampled_from([7.0, 25.0, 100.0, 33.3]),
+    offset=st.tuples(st.floats(-1e4, 1e4), st.floats(-1e4, 1e4)),
+)
+def test_tiles_partition_the_mesh(seed, n_faces, tile, offset):
+    rng = np.random.default_rng(seed)
+    v, f = random_mesh(rng, n_faces, span=3.5 * tile, offset=np.array([*offset, 0.0]))
+    m = MeshMap.from_mesh(v, f, np.zeros(len(v), bool), tile_size_m=tile)
+
+    origin = np.floor(v[:, :2].min(axis=0) / tile) * tile
+    np.testing.assert_array_equal(m.tile_origin_xy, origin)
+    centroid = v[f].mean(axis=1)[:, :2]
+    ij = np.floor((centroid - origin) / tile).astype(int)
+    expected_tiles = sorted({tuple(t) for t in ij})
+    assert [tuple(t) for t in m.tiles] == expected_tiles
+    np.testing.assert_array_equal(m.tiles[m.face_tile], ij)
+
+    # union of tile_faces is all faces, each once; each tile's faces are exactly those with its (i, j)
+    parts = [m.tile_faces([k]) for k in range(len(m.tiles))]
+    allf = np.concatenate(parts)
+    assert len(allf) == len(f)
+    np.testing.assert_array_equal(np.sort(allf), np.arange(len(f)))
+    for k, p in enumerate(parts):
+        np.testing.assert_array_equal(p, np.flatnonzero((ij == m.tiles[k]).all(axis=1)))
+    np.testing.assert_array_equal(m.tile_faces(np.arange(len(m.tiles))), np.arange(len(f)))
+
+    # tile_at: direct floor computation and a lookup table
+    lookup = {tuple(t): k for k, t in enumerate(m.tiles)}
+    q = origin + rng.uniform(-tile, 4.5 * tile, (200, 2))
+    qij = np.floor((q - origin) / tile).astype(int)
+    want = [lookup.get(tuple(t), -1) for t in qij]
+    np.testing.assert_array_equal(m.tile_at(q[:, 0], q[:, 1]), want)
+    np.testing.assert_array_equal(m.tile_at(centroid[:, 0], centroid[:, 1]), m.face_tile)
+
+    # bounds hold the centroids; submesh holds the same triangles
+    k = int(m.face_tile[0])
+    xmin, ymin, xmax, ymax = m.tile_bounds(k)
+    inside = m.tile_faces(k)
+    assert np.all((centroid[inside] >= [xmin, ymin]) & (centroid[inside] < [xmax, ymax]))
+    sv, sf = m.submesh([k])
+    np.testing.assert_array_equal(sv[sf], v[f[inside]])
+    assert len(np.unique(sf)) == len(sv)
+
+
+def test_straddling_faces_go_by_centroid_and_bounds():
+    # tile 10 m, origin 0: a triangle from x=1 to x=19 with centroid x = 13 belongs to tile (1, 0)
+    v = np.array([[1.0, 1, 0], [19, 1, 0], [19, 2, 0], [0, 0, 0], [2, 0, 0], [2, 2, 0], [25, 0, 0]])
+    f = np.array([[0, 1, 2], [3, 4, 5]])
+    m = MeshMap.from_mesh(v, f, tile_size_m=10.0)
+    np.testing.assert_array_equal(m.tiles, [[0, 0], [1, 0]])
+    np.testing.assert_array_equal(m.face_tile, [1, 0])
+    assert m.tile_bounds(1) == (10.0, 0.0, 20.0, 10.0)
+    # vertex 6 (unused) lies in tile (2, 0), which holds no face: no tile there
+    assert m.tile_at(25.0, 5.0) == -1
+    assert list(m.tile_at([5.0, 15.0, -1.0, np.nan], [5.0, 5.0, 5.0, 5.0])) == [0, 1, -1, -1]
+    assert m.extent == (0.0, 0.0, 0.0, 25.0, 2.0, 0.0)
+    assert (m.n_triangles, m.n_vertices) == (2, 7)
+    with pytest.raises(IndexError):
+        m.tile_faces([2])
+    assert len(m.tile_faces([])) == 0
+
+
+# --- ground grid -----------------------------------------------------------------------------------------
+
+
+def test_ground_grid_is_exact_on_a_sloped_plane():
+    v, f = grid_plane(30, 20, lambda x, y: 0.1 * x, x0=-10.0, y0=5.0)
+    m = MeshMap.from_mesh(v, f, ground_cell_m=1.0)  # labels by the rule: a 5.7° slope is ground
+    assert m.is_ground.all()
+    g = m.ground
+    assert g.shape == (20, 30) and g.measured.all()
+    np.testing.assert_array_equal(g.origin_xy, [-10.0, 5.0])
+    rng = np.random.default_rng(1)
+    x = rng.uniform(-9.5, 19.5, 500)  # inside the hull of cell centres
+    y = rng.uniform(5.5, 24.5, 500)
+    np.testing.assert_allclose(g.height_at(x, y), 0.1 * x, atol=1e-5)
+    # outside: the nearest edge value (clamped to the outermost cell centres)
+    np.testing.assert_allclose(g.height_at([-50.0, 100.0], [0.0, 100.0]), [0.1 * -9.5, 0.1 * 19.5], atol=1e-5)
+    assert g.height_at(np.zeros((3, 4)), np.zeros((3, 4))).shape == (3, 4)
+    assert np.isnan(g.height_at(np.nan, 0.0))
+
+
+def test_ground_grid_median_and_nan_filling():
+    v = np.array(
+        [
+            *([0.5, 0.5, 1.0], [0.6, 0.4, 2.0], [0.4, 0.6, 10.0]),  # cell (0, 0): median 2
+            *([3.5, 0.5, 1.0], [3.5, 0.5, 2.0], [3.5, 0.5, 3.0], [3.5, 0.5, 10.0]),  # cell (3, 0): 2.5
+            [3.5, 2.5, 99.0],  # not ground
+        ]
+    )
+    g = GroundGrid.from_vertices(v, np.arange(len(v)) < 7, cell_m=1.0)
+    assert g.shape == (3, 4)
+    np.testing.assert_array_equal(g.measured, [[1, 0, 0, 1], [0, 0, 0, 0], [0, 0, 0, 0]])
+    np.testing.assert_array_equal(g.heights[0, [0, 3]], [2.0, 2.5])
+    assert np.isnan(g.heights[1:, :]).all()
+    # unmeasured cell centres take the nearest measured cell's value; between centres, bilinear
+    assert g.height_at(1.5, 0.5) == 2.0 and g.height_at(2.5, 0.5) == 2.5
+    assert g.height_at(0.5, 2.5) == 2.0 and g.height_at(3.5, 2.5) == 2.5
+    np.testing.assert_allclose(g.height_at(2.0, 0.5), 2.25)
+    # a hand-made grid: NaN cells filled from the nearest known cell, outside = edge
+    h = np.array([[np.nan, 1.0, np.nan], [np.nan, np.nan, np.nan], [3.0, np.nan, np.nan]], np.float32)
+    g2 = GroundGrid(np.array([10.0, 20.0]), 2.0, h)
+    np.testing.assert_array_equal(g2.filled, [[1, 1, 1], [3, 1, 1], [3, 3, 3]])  # by distance
+    assert g2.height_at(11.0, 21.0) == 1.0 and g2.height_at(0.0, 100.0) == 3.0
+    # nothing measured: NaN everywhere
+    assert np.isnan(GroundGrid.from_vertices(v, np.zeros(len(v), bool)).height_at(0.5, 0.5))
+
+
+def test_ground_rule_keeps_roofs_and_walls_out():
+    pv, pf = grid_plane(10, 10, lambda x, y: 0.02 * y)
+    bv, bf = box([3.2, 3.2, 0.0], [6.8, 6.8, 2.0])  # sits on the plane; its cells hold plane vertices
+    v = np.vstack([pv, bv])
+    f = np.vstack([pf, bf + len(pv)])
+    g = label_ground_vertices(v, f)
+    assert g[: len(pv)].all()
+    assert not g[len(pv) + 4 :].any()  # the box's top corners
+    # the winding does not matter
+    np.testing.assert_array_equal(label_ground_vertices(v, f[:, ::-1]), g)
+
+
+# --- disk ------------------------------------------------------------------------------------------------
+
+
+def make_map(seed=0, tile=40.0):
+    rng = np.random.default_rng(seed)
+    v, f = random_mesh(rng, 400, span=150.0, offset=np.array([-60.0, 30.0, 5.0]))
+    is_ground = rng.random(len(v)) < 0.4
+    meta = {
+        "frame": "world",
+        "sensor_height_m": 1.73,
+        "build": {"poisson": {"depth": 9, "voxel_m": 0.1}, "tiles": [1, 2]},
+        "scene": None,
+        "source": Path("/x/y"),
+        "n": np.int64(3),
+    }
+    return MeshMap.from_mesh(v, f, is_ground, tile_size_m=tile, ground_cell_m=2.0, meta=meta)
+
+
+def test_round_trip_is_exact(tmp_path):
+    m = make_map()
+    out = tmp_path / "deep" / "map"
+    m.save(out)
+    assert sorted(p.name for p in out.iterdir()) == ["ground.npz", "map.yaml", "mesh.ply", "tiles.npz"]
+    r = MeshMap.load(out)
+    np.testing.assert_array_equal(r.vertices, m.vertices)
+    np.testing.assert_array_equal(r.faces, m.faces)
+    np.testing.assert_array_equal(r.is_ground, m.is_ground)
+    np.testing.assert_array_equal(r.tiles, m.tiles)
+    np.testing.assert_array_equal(r.face_tile, m.face_tile)
+    np.testing.assert_array_equal(r.tile_origin_xy, m.tile_origin_xy)
+    assert r.tile_size_m == m.tile_size_m == 40.0
+    np.testing.assert_array_equal(r.ground.heights, m.ground.heights)
+    np.testing.assert_array_equal(r.ground.origin_xy, m.ground.origin_xy)
+    assert r.ground.cell_m == 2.0
+    assert r.meta == {**m.meta, "source": "/x/y", "n": 3}
+    assert r.faces.dtype == np.int32 and r.vertices.dtype == np.float64
+
+    # the PLY is ordinary: trimesh and Open3D read the same vertices and colours
+    t = trimesh.load(out / "mesh.ply", process=False)
+    np.testing.assert_array_equal(t.vertices, m.vertices)
+    np.testing.assert_array_equal(t.faces, m.faces)
+    rgb = np.asarray(t.visual.vertex_colors)[:, :3]
+    np.testing.assert_array_equal(rgb, np.where(m.is_ground[:, None], GROUND, OTHER))
+    import open3d as o3d
+
+    o = o3d.io.read_triangle_mesh(str(out / "mesh.ply"))
+    np.testing.assert_array_equal(np.asarray(o.vertices), m.vertices)
+
+    doc = yaml.safe_load((out / "map.yaml").read_text())
+    assert doc["format_version"] == 1
+    assert doc["counts"] == {
+        "vertices": m.n_vertices,
+        "triangles": m.n_triangles,
+        "ground_vertices": int(m.is_ground.sum()),
+        "tiles": len(m.tiles),
+    }
+
+    s = map_summary(r)
+    assert s["triangles"] == m.n_triangles and s["tiles"] == len(m.tiles) and s["tile_size_m"] == 40.0
+    assert s["bytes_on_disk"] == sum(p.stat().st_size for p in out.iterdir())
+    assert s["frame"] == "world" and s["sensor_height_m"] == 1.73
+    assert "bytes_on_disk" not in map_summary(m)
+
+    # saving again over it works and leaves no temporary files
+    r.save(out)
+    assert len(list(out.iterdir())) == 4
+
+
+def test_import_obj_and_ply_with_our_colours(tmp_path):
+    v, f = grid_plane(6, 5, lambda x, y: 0.0 * x, x0=100.0)
+    bv, bf = box([101.2, 1.2, 0.0], [103.8, 3.8, 3.0])
+    v, f = np.vstack([v, bv]), np.vstack([f, bf + len(v)])
+    obj = tmp_path / "m.obj"
+    obj.write_text(trimesh.exchange.obj.export_obj(trimesh.Trimesh(v, f, process=False), digits=10))
+    m = import_mesh(obj, tile_size_m=50.0, meta={"frame": "utm"})
+    np.testing.assert_allclose(m.vertices, v, atol=1e-9)
+    np.testing.assert_array_equal(m.faces, f)
+    assert m.is_ground[:30].all() and not m.is_ground[30 + 4 :].any()
+    assert m.meta["frame"] == "utm" and m.meta["source_mesh"] == str(obj)
+    assert m.tile_size_m == 50.0
+
+    # a PLY with our colours: labels come from the colours (here deliberately unlike the rule)
+    want = np.zeros(len(v), bool)
+    want[::3] = True
+    ply = tmp_path / "c.ply"
+    write_trimesh_ply(ply, v, f, np.where(want[:, None], GROUND, OTHER).astype(np.uint8))
+    c = import_mesh(ply)
+    np.testing.assert_array_equal(c.is_ground, want)
+    np.testing.assert_allclose(c.vertices, v, atol=1e-5)  # trimesh writes float32 here
+    # other colours: the rule
+    write_trimesh_ply(ply, v, f, np.full((len(v), 3), 7, np.uint8))
+    np.testing.assert_array_equal(import_mesh(ply).is_ground, m.is_ground)
+    # our own map's mesh.ply imports with its labels
+    mm = make_map(3)
+    mm.save(tmp_path / "map")
+    np.testing.assert_array_equal(import_mesh(tmp_path / "map" / "mesh.ply").is_ground, mm.is_ground)
+
+
+# --- errors ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("vertices", "faces", "words"),
+    [
+        (np.zeros((0, 3)), np.zeros((0, 3), int), "empty"),
+        (np.zeros((3, 3)), np.zeros((0, 3), int), "empty"),
+        ([[0, 0, np.nan], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]], "NaN"),
+        ([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 3]], "out of range"),
+        ([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, -1]], "out of range"),
+        ([[0, 0, 0], [1, 0, 0], [2, 0, 0]], [[0, 1, 2], [0, 0, 1]], "degenerate"),
+        ([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2, 0]], "triangles"),
+        ([[0, 0], [1, 0], [0, 1]], [[0, 1, 2]], "(V, 3)"),
+    ],
+)
+def test_from_mesh_rejects_bad_meshes(vertices, faces, words):
+    with pytest.raises(InputError, match=None) as err:
+        MeshMap.from_mesh(np.asarray(vertices, float), np.asarray(faces), np.zeros(len(vertices), bool))
+    assert words in str(err.value) and "\n" not in str(err.value)
+
+
+def test_from_mesh_rejects_bad_labels_and_sizes():
+    v, f = box([0, 0, 0], [1, 1, 1])
+    with pytest.raises(InputError, match="is_ground"):
+        MeshMap.from_mesh(v, f, np.zeros(3, bool))
+    with pytest.raises(InputError, match="tile_size_m"):
+        MeshMap.from_mesh(v, f, tile_size_m=0)
+    with pytest.raises(InputError, match="ground_cell_m"):
+        MeshMap.from_mesh(v, f, ground_cell_m=float("nan"))
+
+
+def _saved(tmp_path) -> Path:
+    d = tmp_path / "map"
+    MeshMap.from_mesh(*box([0, 0, 0], [150, 30, 5]), tile_size_m=100.0).save(d)
+    return d
+
+
+def _edit_yaml(path: Path, edit):
+    doc = yaml.safe_load(path.read_text())
+    edit(doc)
+    path.write_text(yaml.safe_dump(doc))
+
+
+def _npz_without(path: Path, key: str, **replace):
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files if k != key}
+    arrays.update(replace)
+    np.savez(path, **arrays)
+
+
+LOAD_BREAKAGES = {
+    "missing folder": (lambda d: os.rename(d, d.with_name("gone")), "map"),
+    "missing mesh": (lambda d: (d / "mesh.ply").unlink(), "mesh.ply"),
+    "missing map.yaml": (lambda d: (d / "map.yaml").unlink(), "map.yaml"),
+    "missing tiles": (lambda d: (d / "tiles.npz").unlink(), "tiles.npz"),
+    "truncated ply": (
+        lambda d: (d / "mesh.ply").write_bytes((d / "mesh.ply").read_bytes()[:-20]),
+        "mesh.ply",
+    ),
+    "ply header only": (
+        lambda d: (d / "mesh.ply").write_bytes((d / "mesh.ply").read_bytes()[:150]),
+        "mesh.ply",
+    ),
+    "not a ply": (lambda d: (d / "mesh.ply").write_text("hello"), "mesh.ply"),
+    "ascii ply": (
+        lambda d: write_trimesh_ply(d / "mesh.ply", *box([0, 0, 0], [1, 1, 1]), encoding="ascii"),
+        "mesh.ply",
+    ),
+    "counts disagree": (
+        lambda d: _edit_yaml(d / "map.yaml", lambda y: y["counts"].update(vertices=9)),
+        "mesh.ply",
+    ),
+    "wrong version": (lambda d: _edit_yaml(d / "map.yaml", lambda y: y.update(format_version=2)), "map.yaml"),
+    "malformed yaml": (lambda d: (d / "map.yaml").write_text("counts: [1, 2\n"), "map.yaml"),
+    "duplicate key": (lambda d: (d / "map.yaml").write_text("a: 1\na: 2\n"), "map.yaml"),
+    "broken npz": (lambda d: (d / "tiles.npz").write_bytes(b"PK\x03\x04junk"), "tiles.npz"),
+    "npz lacks key": (lambda d: _npz_without(d / "ground.npz", "heights"), "ground.npz"),
+    "bad tiling": (lambda d: _npz_without(d / "tiles.npz", "tile_size_m", tile_size_m=7.0), "tiles.npz"),
+    "face_tile short": (
+        lambda d: _npz_without(d / "tiles.npz", "face_tile", face_tile=np.zeros(3, np.int32)),
+        "tiles.npz",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", sorted(LOAD_BREAKAGES))
+def test_load_errors_name_the_file(tmp_path, case):
+    d = _saved(tmp_path)
+    breakage, name = LOAD_BREAKAGES[case]
+    breakage(d)
+    with pytest.raises(InputError) as err:
+        MeshMap.load(d)
+    msg = str(err.value)
+    assert name in msg and "\n" not in msg, msg
+
+
+def test_ascii_ply_is_for_import_only(tmp_path):
+    p = tmp_path / "a.ply"
+    write_trimesh_ply(p, *box([0, 0, 0], [1, 1, 1]), encoding="ascii")
+    with pytest.raises(InputError, match="only binary PLY"):
+        read_ply_binary(p)
+    assert import_mesh(p).n_triangles == 12  # import reads any format trimesh reads
+
+
+def test_save_to_unwritable_path_names_it(tmp_path):
+    blocker = tmp_path / "file.txt"
+    blocker.write_text("x")
+    m = MeshMap.from_mesh(*box([0, 0, 0], [1, 1, 1]))
+    with pytest.raises(InputError, match=r"file\.txt"):
+        m.save(blocker / "map")
+    with pytest.raises(InputError, match=r"file\.txt"):
+        m.save(blocker)
+
+
+def test_import_errors_name_the_file(tmp_path):
+    with pytest.raises(InputError, match=r"nope\.ply"):
+        import_mesh(tmp_path / "nope.ply")
+    bad = tmp_path / "bad.ply"
+    bad.write_bytes(
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 99\nproperty float x\nend_header\n"
+    )
+    with pytest.raises(InputError, match=r"bad\.ply"):
+        import_mesh(bad)
+    cloud = tmp_path / "cloud.ply"
+    cloud.write_bytes(trimesh.PointCloud(np.random.default_rng(0).random((10, 3))).export(file_type="ply"))
+    with pytest.raises(InputError, match=r"cloud\.ply"):
+        import_mesh(cloud)
+    flat = tmp_path / "flat.obj"
+    flat.write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n")
+    with pytest.raises(InputError, match=r"flat\.obj.*degenerate"):
+        import_mesh(flat)
+    garbage = tmp_path / "g.obj"
+    garbage.write_bytes(np.random.default_rng(5).integers(0, 256, 200, np.uint8).tobytes())
+    with pytest.raises(InputError, match=r"g\.obj"):
+        import_mesh(garbage)
