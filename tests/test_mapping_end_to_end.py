@@ -1,0 +1,130 @@
+"""A recorded drive through the map builder, measured against the scene's true surface; and the builder's
+answers to bad sequences."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from rangemcl.config import load_config
+from rangemcl.dataset import SequenceWriter, load_sequence
+from rangemcl.errors import InputError
+from rangemcl.mapping.meshmap import MeshMap, import_mesh
+from rangemcl.mapping.pipeline import MapSettings, build_map
+from rangemcl.mapping.quality import map_quality
+from simbed.geometry import write_ply
+from simbed.record import record
+from simbed.world import World
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory):
+    root = tmp_path_factory.mktemp("e2e")
+    seq = root / "seq"
+    record("town_small", "mapping", "os1-64", seq, frames=12, seed=3, progress=False)
+    world = World("town_small")
+    truth = root / "truth.ply"
+    write_ply(truth, *world.static_triangles)
+    return root, seq, truth
+
+
+def fast_settings() -> MapSettings:
+    s = MapSettings()
+    s.poisson.depth = 8
+    s.workers = 2
+    return s
+
+
+def test_map_from_a_drive_matches_the_true_surface(drive):
+    root, seq, truth = drive
+    out = root / "map"
+    report = build_map(seq, out, fast_settings())
+    m = MeshMap.load(out)
+    assert report.scans_used == 12 and m.n_triangles == report.triangles > 10_000
+    assert report.triangles < report.triangles_before_simplify  # ground simplification did something
+    assert report.ground_triangles_after < 0.5 * report.ground_triangles_before
+    t = import_mesh(truth)
+    s = load_sequence(seq)
+    ref = np.concatenate([s.scan(i) @ s.poses[i][:3, :3].T + s.poses[i][:3, 3] for i in range(len(s))])
+    q = map_quality(m.vertices, m.faces, t.vertices, t.faces, reference_points=ref[::20])
+    assert q["surface_dist_median_m"] < 0.05 and q["vertex_dist_median_m"] < 0.15
+    assert q["completeness"] > 0.75
+    # the ground lookup agrees with the true terrain under the drive
+    xy = s.poses[:, :2, 3]
+    z_truth = World("town_small").ground_height(xy[:, 0], xy[:, 1])
+    assert np.abs(m.ground.height_at(xy[:, 0], xy[:, 1]) - z_truth).max() < 0.15
+    # the run wrote its effective settings and a report
+    assert load_config(MapSettings, out / "config.yaml") == fast_settings()
+    assert json.loads((out / "report.json").read_text())["scans_used"] == 12
+
+
+def test_bad_scans_are_skipped_and_counted(drive, tmp_path):
+    _, seq, _ = drive
+    s = load_sequence(seq)
+    bad = tmp_path / "bad"
+    with SequenceWriter(bad, meta=dict(s.meta)) as w:
+        for i in range(4):
+            pts = s.scan(i).copy()
+            if i == 1:
+                pts[::10] = np.nan  # some NaN points
+            if i == 2:
+                pts[:] = np.nan  # no valid point at all
+            w.add_frame(pts, pose=s.poses[i], time_s=float(s.times[i]))
+    report = build_map(bad, tmp_path / "map", fast_settings())
+    assert report.scans_skipped_empty == 1 and report.scans_used == 3
+    assert report.points_nonfinite == len(s.scan(2)) + len(s.scan(1)[::10])
+
+
+def test_bad_sequences_are_input_errors(drive, tmp_path):
+    _, seq, _ = drive
+    copy = tmp_path / "copy"
+    shutil.copytree(seq, copy)
+    (copy / "poses.txt").unlink()
+    with pytest.raises(InputError, match="poses"):
+        build_map(copy, tmp_path / "m1", fast_settings())
+    shutil.rmtree(copy)
+    shutil.copytree(seq, copy)
+    scan = copy / "velodyne" / "000003.bin"
+    scan.write_bytes(scan.read_bytes()[:-7])
+    with pytest.raises(InputError, match=r"000003.bin.*truncated"):
+        build_map(copy, tmp_path / "m2", fast_settings())
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    with pytest.raises(InputError, match="cannot write"):
+        build_map(seq, blocker / "map", fast_settings())
+    assert not (tmp_path / "m1").exists() and not (tmp_path / "m2").exists()
+
+
+def test_cli_one_line_errors(tmp_path):
+    code = "import sys; from rangemcl.cli import main; sys.argv[0] = 'rangemcl'; main()"
+    out = subprocess.run(
+        [sys.executable, "-c", code, "build-map", str(tmp_path / "nope"), "--out", str(tmp_path / "m")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1 and "nope" in out.stderr
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("poisson:\n  dept: 8\n")
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            code,
+            "build-map",
+            str(tmp_path),
+            "--out",
+            str(tmp_path / "m"),
+            "--config",
+            str(cfg),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode == 2 and "poisson.dept" in out.stderr and "depth" in out.stderr
