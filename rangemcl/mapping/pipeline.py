@@ -214,15 +214,34 @@ def voxel_thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
     return np.sort(first)
 
 
+def accumulate_thinned(chunks: list[Path], voxel_m: float, flush_points: int = 4_000_000):
+    """A tile's spooled points, one per voxel (the earliest scan's wins), read chunk by chunk so that
+    memory follows the tile's surface area, not how often the drive passed by."""
+    kept: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    pending = 0
+    for path in chunks:
+        with np.load(path) as d:
+            kept.append((d["points"], d["normals"], d["ground"]))
+        pending += len(kept[-1][0])
+        if pending >= flush_points:
+            kept = [_thin_parts(kept, voxel_m)]
+            pending = 0
+    return _thin_parts(kept, voxel_m)
+
+
+def _thin_parts(parts, voxel_m: float):
+    points = np.concatenate([p for p, _, _ in parts])
+    normals = np.concatenate([n for _, n, _ in parts])
+    ground = np.concatenate([g for _, _, g in parts])
+    keep = voxel_thin(points, voxel_m)
+    return points[keep], normals[keep], ground[keep]
+
+
 def build_tile(job: TileJob) -> dict:
     """Poisson mesh of one tile (its points include the margin), cropped to the tile, ground simplified."""
     t0 = time.perf_counter()
-    parts = [np.load(p) for p in job.chunks]
-    points = np.concatenate([d["points"] for d in parts])
-    normals = np.concatenate([d["normals"] for d in parts]).astype(np.float64)
-    ground = np.concatenate([d["ground"] for d in parts])
-    keep = voxel_thin(points, job.poisson.voxel_m)
-    points, normals, ground = points[keep], normals[keep], ground[keep]
+    points, normals, ground = accumulate_thinned(job.chunks, job.poisson.voxel_m)
+    normals = normals.astype(np.float64)
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     ti, tj = job.tile
     box = (ti * job.tile_m, tj * job.tile_m, (ti + 1) * job.tile_m, (tj + 1) * job.tile_m)
