@@ -31,6 +31,7 @@ from rangemcl.mapping.poisson import poisson_mesh, transfer_labels
 from rangemcl.mapping.simplify import simplify_ground
 from rangemcl.rangeimage import RangeImageGeometry
 from rangemcl.sensors import spec_from_dict
+from rangemcl.transforms import interpolate_poses
 
 # ---------------------------------------------------------------------------------------------- settings
 
@@ -42,6 +43,7 @@ class ScanSettings:
     every_nth: int = 1  # use every n-th scan
     max_edge_m: float = 1.0  # neighbour distance beyond which a pixel's normal is a depth edge
     drop_dynamic_labels: bool = False  # simulator-only: drop points labelled as moving actors
+    deskew: bool = True  # with per-point firing times: place each point from the pose at its own time
 
 
 @dataclass
@@ -147,6 +149,7 @@ def oriented_points(seq: Sequence, i: int, spec, geometry, settings: MapSettings
     if spec is not None and "ring" in meta and "column" in meta:
         rows = np.asarray(spec.row_of_beam)[meta["ring"].astype(np.int64)][keep]
         cols = meta["column"].astype(np.int64)[keep]
+    fire_s = meta["time_s"][keep].astype(np.float64) if "time_s" in meta else None
     points = points[keep]
     if len(points) == 0:
         return None
@@ -164,9 +167,19 @@ def oriented_points(seq: Sequence, i: int, spec, geometry, settings: MapSettings
         max_angle_deg=g.max_angle_deg,
         z_margin_m=g.z_margin_m,
     )
-    T = seq.poses[i]
-    p_world = points[valid] @ T[:3, :3].T + T[:3, 3]
-    n_world = normals[valid].astype(np.float64) @ T[:3, :3].T
+    p, n = points[valid], normals[valid].astype(np.float64)
+    if s.deskew and fire_s is not None and seq.times is not None and len(seq) > 1:
+        # each point from the sensor pose at its firing time (relative to the scan's stamp, <= 0)
+        times, unique_inv = np.unique(fire_s[valid], return_inverse=True)
+        lo, hi = max(i - 1, 0), min(i + 1, len(seq) - 1)
+        window = slice(lo, hi + 1)
+        T = interpolate_poses(seq.times[window], seq.poses[window], seq.times[i] + times)[unique_inv]
+        p_world = np.einsum("nij,nj->ni", T[:, :3, :3], p) + T[:, :3, 3]
+        n_world = np.einsum("nij,nj->ni", T[:, :3, :3], n)
+    else:
+        T = seq.poses[i]
+        p_world = p @ T[:3, :3].T + T[:3, 3]
+        n_world = n @ T[:3, :3].T
     return p_world, n_world, ground[valid]
 
 
