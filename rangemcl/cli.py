@@ -210,8 +210,12 @@ def map_quality_cmd(
         from rangemcl.dataset import load_sequence
 
         seq = load_sequence(reference, require_poses=True)
-        clouds = [seq.scan(i) @ seq.poses[i][:3, :3].T + seq.poses[i][:3, 3] for i in range(len(seq))]
+        every = max(1, len(seq) // 50)  # about 50 scans spread over the drive
+        poses = seq.poses
+        clouds = [seq.scan(i) @ poses[i][:3, :3].T + poses[i][:3, 3] for i in range(0, len(seq), every)]
         ref = np.concatenate(clouds)
+        if len(ref) > 1_000_000:
+            ref = ref[np.random.default_rng(0).choice(len(ref), 1_000_000, replace=False)]
     q = map_quality(m.vertices, m.faces, t.vertices, t.faces, reference_points=ref, tolerance_m=tolerance)
     for key, value in q.items():
         typer.echo(f"{key:<32}  {value:.4f}" if isinstance(value, float) else f"{key:<32}  {value}")
