@@ -103,6 +103,7 @@ def covering_walk(graph: RoadGraph, start: int = 0) -> list[int]:
         if found is None:  # the rest is unreachable: the graph is not connected
             break
         path = graph.shortest_path(here, found, came_from=walk[-2] if len(walk) > 1 else None)
+        todo.difference_update(frozenset(p) for p in pairwise(path))  # roads driven on the way count too
         walk.extend(path[1:])
     if walk[-1] != start:
         walk.extend(graph.shortest_path(walk[-1], start, came_from=walk[-2] if len(walk) > 1 else None)[1:])
