@@ -17,6 +17,7 @@ from typing import Any, TypeVar
 
 import yaml
 
+from rangemcl.atomic import atomic_write
 from rangemcl.errors import InputError
 from rangemcl.yamlio import parse_yaml
 
@@ -115,7 +116,4 @@ def write_config(config, path: str | os.PathLike) -> Path:
     """Write the effective settings as YAML next to a run's results."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(yaml.safe_dump(to_dict(config), sort_keys=False))
-    os.replace(tmp, path)
-    return path
+    return atomic_write(path, yaml.safe_dump(to_dict(config), sort_keys=False))

@@ -34,7 +34,6 @@ from __future__ import annotations
 import math
 import os
 import shutil
-import tempfile
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,6 +42,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from rangemcl.atomic import atomic_write
 from rangemcl.errors import InputError
 from rangemcl.scanio import read_scan_bin, write_scan_bin
 from rangemcl.yamlio import parse_yaml
@@ -65,24 +65,6 @@ _SEQUENCE_DIRS = ("velodyne", "points_meta")
 
 
 # --- small helpers ---------------------------------------------------------------------------------------
-
-
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temporary file in the same folder and ``os.replace``."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    _atomic_write_bytes(path, text.encode("utf-8"))
 
 
 def _oserror(path: Path, what: str, err: OSError) -> InputError:
@@ -202,7 +184,7 @@ def write_poses_txt(path: str | os.PathLike[str], poses: Any) -> Path:
     lines = [_pose_line(_as_pose(T, f"{path}: pose {k}")) for k, T in enumerate(a)]
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        _atomic_write_text(path, "".join(lines))
+        atomic_write(path, "".join(lines))
     except OSError as err:
         raise _oserror(path, "write poses", err) from None
     return path
@@ -551,7 +533,7 @@ class SequenceWriter:
     def _write_text(self, name: str, text: str) -> None:
         path = self.root / name
         try:
-            _atomic_write_text(path, text)
+            atomic_write(path, text)
         except OSError as err:
             raise _oserror(path, "write", err) from None
 

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from rangemcl.atomic import atomic_write
 from rangemcl.errors import InputError
 
 
@@ -22,16 +21,7 @@ def write_scan_bin(path, points: np.ndarray, intensity: np.ndarray | None = None
     records = np.column_stack([p, i]).astype(np.float32)  # (N, 4)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(records.tobytes())
-            f.flush()
-            os.fsync(f.fileno())  # on disk before any index line that refers to it
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write(path, records.tobytes())  # on disk before any index line that refers to it
     return path
 
 

@@ -28,10 +28,7 @@ ellipsoid).
 
 from __future__ import annotations
 
-import contextlib
 import math
-import os
-import tempfile
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,7 +37,9 @@ import mujoco
 import numpy as np
 
 from rangemcl import meshgen
+from rangemcl.atomic import atomic_write
 from rangemcl.errors import InputError
+from rangemcl.mapping.meshmap import write_ply_binary
 
 Mesh = tuple[np.ndarray, np.ndarray]
 
@@ -299,32 +298,14 @@ def split_static_dynamic(
 
 # ---------------------------------------------------------------------- files
 def write_ply(path, vertices, faces) -> Path:
-    """Write a triangle mesh as binary PLY, atomically (temporary file in the same folder, then rename).
-
-    A missing folder or an unwritable path is an ``InputError`` naming the path.
-    """
-    import trimesh
-
+    """Write a triangle mesh as binary PLY, atomically; an unwritable path is an ``InputError`` naming it."""
     path = Path(path)
     if not path.parent.is_dir():
         why = "is not a folder" if path.parent.exists() else "does not exist"
         raise InputError(f"cannot write {path}: {path.parent} {why}")
-    mesh = trimesh.Trimesh(
-        vertices=np.asarray(vertices, np.float64), faces=np.asarray(faces, np.int64), process=False
-    )
-    payload = trimesh.exchange.ply.export_ply(mesh, encoding="binary")
-    tmp = None
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        with os.fdopen(fd, "wb") as f:
-            f.write(payload)
-        os.replace(tmp, path)
-    except OSError as err:
-        if tmp is not None:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
-        raise InputError(f"cannot write {path}: {err.strerror or err}") from None
-    return path
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int32)
+    return atomic_write(path, lambda fh: write_ply_binary(fh, v, f))
 
 
 def export_static_mesh(model: mujoco.MjModel, path, **kw) -> Path:

@@ -28,10 +28,7 @@ is labelled ground.
 
 from __future__ import annotations
 
-import contextlib
 import math
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,6 +36,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from rangemcl.atomic import atomic_write
 from rangemcl.errors import InputError
 from rangemcl.yamlio import parse_yaml
 
@@ -319,10 +317,10 @@ class MeshMap:
         except OSError as err:
             raise InputError(f"cannot write map folder {map_dir}: {err.strerror or err}") from None
         colours = np.where(self.is_ground[:, None], GROUND_RGB, NON_GROUND_RGB).astype(np.uint8)
-        _atomic_write(
+        atomic_write(
             map_dir / "mesh.ply", lambda fh: write_ply_binary(fh, self.vertices, self.faces, colours)
         )
-        _atomic_write(
+        atomic_write(
             map_dir / "tiles.npz",
             lambda fh: np.savez(
                 fh,
@@ -332,7 +330,7 @@ class MeshMap:
                 face_tile=self.face_tile,
             ),
         )
-        _atomic_write(
+        atomic_write(
             map_dir / "ground.npz",
             lambda fh: np.savez(
                 fh,
@@ -357,7 +355,7 @@ class MeshMap:
             "meta": _plain(self.meta),
         }
         text = yaml.safe_dump(doc, sort_keys=False, allow_unicode=True)
-        _atomic_write(map_dir / "map.yaml", lambda fh: fh.write(text.encode()))
+        atomic_write(map_dir / "map.yaml", lambda fh: fh.write(text.encode()))
         return map_dir
 
     @classmethod
@@ -721,20 +719,6 @@ def read_ply_binary(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | No
 
 
 # ---------------------------------------------------------------------------------------------- file helpers
-
-
-def _atomic_write(path: Path, write) -> None:
-    tmp = None
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        with os.fdopen(fd, "wb") as fh:
-            write(fh)
-        os.replace(tmp, path)
-    except OSError as err:
-        if tmp is not None:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
-        raise InputError(f"cannot write {path}: {err.strerror or err}") from None
 
 
 def _read_text(path: Path) -> str:
