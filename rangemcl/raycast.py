@@ -192,12 +192,36 @@ def resolve_device(device: str | None) -> str:
     return name
 
 
+def _unit_directions(d: np.ndarray) -> np.ndarray:
+    """Unit float32 directions; zero-length rows are an ``InputError``.
+
+    The common case stays in float32 (this runs single-threaded before the parallel launch); only rows
+    whose squared length under- or overflows float32 are normalised in float64.
+    """
+    n2 = np.einsum("ij,ij->i", d, d)
+    awkward = ~((n2 > 1e-30) & (n2 < 1e30))
+    if not awkward.any() and np.abs(n2 - 1.0).max(initial=0.0) < 1e-6:
+        return d  # already unit
+    out = d / np.sqrt(np.where(awkward, 1.0, n2))[:, None]
+    if awkward.any():
+        rows = np.flatnonzero(awkward)
+        d64 = d[rows].astype(np.float64)
+        length = np.sqrt(np.einsum("ij,ij->i", d64, d64))
+        if (length == 0.0).any():
+            first = int(rows[np.flatnonzero(length == 0.0)[0]])
+            raise InputError(f"directions[{first}] has zero length ({int((length == 0.0).sum())} rays)")
+        out[rows] = (d64 / length[:, None]).astype(np.float32)
+    return np.ascontiguousarray(out, dtype=np.float32)
+
+
 def _as_points(name: str, array, *, allow_single: bool = False) -> np.ndarray:
     a = np.asarray(array, dtype=np.float32)
     if allow_single and a.shape == (3,):
         a = a[None, :]
     if a.ndim != 2 or a.shape[1] != 3:
         raise InputError(f"{name}: expected shape (N, 3), got {a.shape}")
+    if np.isfinite(a).all():  # the common case, without a per-row pass
+        return np.ascontiguousarray(a)
     bad = ~np.isfinite(a).all(axis=1)
     if bad.any():
         raise InputError(f"{name}[{int(np.flatnonzero(bad)[0])}] is not finite ({bad.sum()} bad rows)")
@@ -361,14 +385,7 @@ class RayCaster:
         o = _as_points("origins", origins, allow_single=True)
         if len(o) not in (1, n):
             raise InputError(f"origins: expected 1 or {n} rows to match directions, got {len(o)}")
-        d64 = d.astype(np.float64)
-        length = np.sqrt(np.einsum("ij,ij->i", d64, d64))  # float64: no overflow or underflow
-        zero = length == 0.0
-        if zero.any():
-            raise InputError(
-                f"directions[{int(np.flatnonzero(zero)[0])}] has zero length ({zero.sum()} rays)"
-            )
-        d = (d64 / length[:, None]).astype(np.float32)
+        d = _unit_directions(d)
         r = np.asarray(max_range, dtype=np.float32).reshape(-1)
         if len(r) not in (1, n):
             raise InputError(f"max_range: expected a scalar or {n} values, got {len(r)}")
