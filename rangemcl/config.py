@@ -19,7 +19,7 @@ import yaml
 
 from rangemcl.atomic import atomic_write
 from rangemcl.errors import InputError
-from rangemcl.yamlio import parse_yaml
+from rangemcl.yamlio import parse_yaml, read_text
 
 T = TypeVar("T")
 
@@ -97,13 +97,7 @@ def load_config(cls: type[T], path: str | os.PathLike | None) -> T:
     """Defaults of ``cls``, overridden by the YAML file at ``path`` (if given)."""
     if path is None:
         return cls()
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such config file") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise InputError(f"{path}: cannot read config ({getattr(err, 'strerror', None) or err})") from None
+    text = read_text(path, "config file")
     return from_dict(cls, parse_yaml(text, str(path)), str(path))
 
 

@@ -45,7 +45,7 @@ import yaml
 from rangemcl.atomic import atomic_write
 from rangemcl.errors import InputError
 from rangemcl.scanio import read_scan_bin, write_scan_bin
-from rangemcl.yamlio import parse_yaml
+from rangemcl.yamlio import parse_yaml, read_text
 
 __all__ = [
     "ROTATION_TOL",
@@ -109,15 +109,7 @@ def _read_lines(path: Path, *, drop_partial: bool) -> list[tuple[int, str]]:
     Trailing blank lines are ignored; a blank line inside the file is an error. With ``drop_partial`` a
     last line without its newline (an interrupted append) is dropped.
     """
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such file") from None
-    except UnicodeDecodeError:
-        raise InputError(f"{path}: not a text file (not UTF-8)") from None
-    except OSError as err:
-        raise _oserror(path, "read file", err) from None
-    lines = text.split("\n")
+    lines = read_text(path).split("\n")
     if drop_partial and lines and lines[-1] != "":
         lines.pop()  # no newline after it: written half
     while lines and not lines[-1].strip():
@@ -217,15 +209,9 @@ def poses_to_tum(poses: Any, times: Any) -> list[str]:
 
 
 def _read_meta(path: Path) -> dict[str, Any]:
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
+    if not path.exists():
         return {}
-    except UnicodeDecodeError:
-        raise InputError(f"{path}: not a text file (not UTF-8)") from None
-    except OSError as err:
-        raise _oserror(path, "read meta", err) from None
-    data = parse_yaml(text, str(path))
+    data = parse_yaml(read_text(path), str(path))
     if data is None:
         return {}
     if not isinstance(data, dict):

@@ -37,7 +37,7 @@ import numpy as np
 import yaml
 
 from rangemcl.errors import InputError
-from rangemcl.yamlio import parse_yaml
+from rangemcl.yamlio import parse_yaml, read_text
 
 DEFAULT_MOUNT_XYZ_M = (0.0, 0.0, 1.73)
 """Default sensor position on the car base: 1.73 m above the ground under the rear axle, level."""
@@ -363,15 +363,7 @@ def _spec_from_yaml(text: str, where: str) -> LidarSpec:
 
 def load_spec_file(path: str | os.PathLike[str]) -> LidarSpec:
     """Load a spec from a YAML file; a missing, unreadable or malformed file raises :class:`InputError`."""
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such LiDAR spec file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        reason = getattr(exc, "strerror", None) or exc
-        raise InputError(f"{path}: cannot read LiDAR spec file: {reason}") from None
-    return _spec_from_yaml(text, str(path))
+    return _spec_from_yaml(read_text(path, "LiDAR spec file"), str(path))
 
 
 # --- presets -----------------------------------------------------------------------------------------

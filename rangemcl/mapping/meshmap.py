@@ -38,7 +38,7 @@ import yaml
 
 from rangemcl.atomic import atomic_write
 from rangemcl.errors import InputError
-from rangemcl.yamlio import parse_yaml
+from rangemcl.yamlio import parse_yaml, read_text
 
 FORMAT_NAME = "rangemcl-mesh-map"
 FORMAT_VERSION = 1
@@ -371,7 +371,7 @@ class MeshMap:
                 raise InputError(f"{map_dir / name}: missing (is {map_dir} a map folder?)")
 
         ypath = map_dir / "map.yaml"
-        doc = parse_yaml(_read_text(ypath), str(ypath))
+        doc = parse_yaml(read_text(ypath), str(ypath))
         if not isinstance(doc, dict):
             raise InputError(f"{ypath}: expected a mapping at the top level")
         version = doc.get("format_version")
@@ -719,13 +719,6 @@ def read_ply_binary(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | No
 
 
 # ---------------------------------------------------------------------------------------------- file helpers
-
-
-def _read_text(path: Path) -> str:
-    try:
-        return path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as err:
-        raise InputError(f"{path}: cannot read: {getattr(err, 'strerror', None) or err}") from None
 
 
 def _read_npz(path: Path, shapes: dict[str, tuple]) -> dict[str, np.ndarray]:
