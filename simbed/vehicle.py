@@ -36,6 +36,7 @@ class CarHandles:
     steer: tuple[int, int]
     drive: tuple[int, int]
     rear_wheel_qpos: tuple[int, int]
+    rear_wheel_qvel: tuple[int, int]
     wheelbase_m: float
     wheel_radius_m: float
     max_steer_rad: float
@@ -70,6 +71,7 @@ class CarHandles:
             steer=steer,
             drive=drive,
             rear_wheel_qpos=tuple(int(model.jnt_qposadr[j]) for j in wheels),
+            rear_wheel_qvel=tuple(int(model.jnt_dofadr[j]) for j in wheels),
             wheelbase_m=abs(wheelbase),
             wheel_radius_m=radius,
             max_steer_rad=float(model.actuator_ctrlrange[steer[0], 1]),
@@ -183,8 +185,26 @@ class RouteFollower:
         )
         for a in self.car.steer:
             data.ctrl[a] = steer
-        for a in self.car.drive:
-            data.ctrl[a] = torque
+        for a, dof in zip(self.car.drive, self.car.rear_wheel_qvel, strict=True):
+            data.ctrl[a] = wheel_torque(torque, float(data.qvel[dof]), speed, self.car.wheel_radius_m)
+
+
+BRAKE_NM_PER_RAD_S = 300.0  # braking torque allowed per rad/s of forward wheel spin
+MAX_WHEEL_NM = 600.0  # drive and brake torque per wheel: half the torque at which a rear wheel slips
+SLIP_MARGIN_MPS = 0.3  # traction control: cut the drive when the wheel's rim outruns the car by more
+
+
+def wheel_torque(torque: float, wheel_rate_rad_s: float, car_speed_mps: float, radius_m: float) -> float:
+    """A rear wheel's torque as a car's brakes, anti-lock and traction control would let it through:
+    at most ``MAX_WHEEL_NM`` either way; braking only slows a wheel that turns forward (in proportion to
+    its spin, so it never drives the wheel backwards); drive torque is cut while the wheel spins faster
+    than the car moves. Keeps wheel slip, and so the wheel odometry's error, small."""
+    torque = float(np.clip(torque, -MAX_WHEEL_NM, MAX_WHEEL_NM))
+    if torque >= 0.0:
+        if wheel_rate_rad_s * radius_m > 1.1 * max(car_speed_mps, 0.0) + SLIP_MARGIN_MPS:
+            return 0.0
+        return torque
+    return float(-min(-torque, BRAKE_NM_PER_RAD_S * max(wheel_rate_rad_s, 0.0)))
 
 
 def _polyline_curvature(p: np.ndarray) -> np.ndarray:

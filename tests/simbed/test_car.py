@@ -183,3 +183,19 @@ def test_twenty_seconds_of_mixed_driving_stay_finite_and_upright(world):
     assert abs(roll) < 0.2 and abs(pitch) < 0.2
     assert -0.1 < d.qpos[2] < 0.1
     assert np.abs(d.qvel).max() < 200.0
+
+
+def test_wheel_torque_never_spins_a_wheel_backwards_or_beyond_the_car():
+    from simbed.vehicle import MAX_WHEEL_NM, wheel_torque
+
+    rng = np.random.default_rng(3)
+    for tq, rate, speed in rng.uniform([-3000, -5, 0], [3000, 40, 12], size=(500, 3)):
+        out = wheel_torque(tq, rate, speed, 0.33)
+        assert abs(out) <= MAX_WHEEL_NM
+        assert np.sign(out) in (0, np.sign(tq))  # brakes brake, drives drive
+        if tq < 0 and rate <= 0:
+            assert out == 0.0  # a wheel at rest or turning backwards gets no braking torque
+        if tq > 0 and rate * 0.33 > 1.1 * speed + 0.3:
+            assert out == 0.0  # traction control
+    assert wheel_torque(-5000, 30.0, 10.0, 0.33) == -MAX_WHEEL_NM
+    assert wheel_torque(5000, 10.0, 3.3, 0.33) == MAX_WHEEL_NM

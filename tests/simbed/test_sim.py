@@ -193,5 +193,9 @@ def test_odometry_drifts_but_tracks(tmp_path):
     assert dist > 15.0
     err = np.linalg.norm(rel_true[:2, 3] - rel_odom[:2, 3])
     assert 1e-4 < err < 0.05 * dist
+    # frame by frame too, from the standing start on: no wheelspin or locked wheels fool the odometry
+    step_true = np.linalg.norm(np.diff(seq.poses[:, :2, 3], axis=0), axis=1)
+    step_odom = np.linalg.norm(np.diff(seq.odometry[:, :2, 3], axis=0), axis=1)
+    assert np.abs(step_true - step_odom).max() < 0.05
     roll_pitch = seq.imu_roll_pitch
     assert np.abs(roll_pitch).max() < np.deg2rad(5)
