@@ -9,6 +9,8 @@ A map folder holds::
     ground.npz   origin_xy (2,), cell_m, heights (ny, nx) float32 (NaN: no ground seen in that cell)
     map.yaml     format, format_version, counts, tile size, extent and ``meta`` (frame, sensor height,
                  build parameters, source, created_by …)
+    drive.npz    optional: xy (K, 2), the mapping drive's sensor positions about 1 m apart (the localizer
+                 spreads its particles near them: the area a car was seen to drive)
 
 Every file is written to a temporary file in the folder and renamed into place; ``map.yaml`` goes last.
 
@@ -193,6 +195,7 @@ class MeshMap:
     tiles: np.ndarray  # (T, 2) int32 (i, j)
     ground: GroundGrid
     meta: dict = field(default_factory=dict)
+    drive_xy: np.ndarray | None = field(default=None, repr=False)  # (K, 2) the mapping drive, if known
     source_dir: Path | None = field(default=None, repr=False)  # the folder it was loaded from
 
     def __post_init__(self) -> None:
@@ -203,6 +206,8 @@ class MeshMap:
         self.tile_origin_xy = np.asarray(self.tile_origin_xy, np.float64).reshape(2)
         self.face_tile = np.asarray(self.face_tile, np.int32)
         self.tiles = np.asarray(self.tiles, np.int32).reshape(-1, 2)
+        if self.drive_xy is not None:
+            self.drive_xy = np.asarray(self.drive_xy, np.float64).reshape(-1, 2)
         # faces grouped by tile: faces of tile k are _face_order[_tile_start[k]:_tile_start[k + 1]]
         self._face_order = np.argsort(self.face_tile, kind="stable")
         self._tile_start = np.searchsorted(self.face_tile[self._face_order], np.arange(len(self.tiles) + 1))
@@ -339,10 +344,14 @@ class MeshMap:
                 heights=self.ground.heights,
             ),
         )
+        files = {"mesh": "mesh.ply", "tiles": "tiles.npz", "ground": "ground.npz"}
+        if self.drive_xy is not None:
+            atomic_write(map_dir / "drive.npz", lambda fh: np.savez(fh, xy=self.drive_xy))
+            files["drive"] = "drive.npz"
         doc = {
             "format": FORMAT_NAME,
             "format_version": FORMAT_VERSION,
-            "files": {"mesh": "mesh.ply", "tiles": "tiles.npz", "ground": "ground.npz"},
+            "files": files,
             "counts": {
                 "vertices": self.n_vertices,
                 "triangles": self.n_triangles,
@@ -434,6 +443,13 @@ class MeshMap:
         except ValueError as err:
             raise InputError(f"{gpath}: {err}") from None
 
+        drive = None
+        dpath = map_dir / "drive.npz"
+        if dpath.is_file():
+            drive = _read_npz(dpath, {"xy": (-1, 2)})["xy"].astype(np.float64)
+            if not np.isfinite(drive).all():
+                raise InputError(f"{dpath}: xy holds non-finite values")
+
         return cls(
             vertices=v,
             faces=f,
@@ -444,6 +460,7 @@ class MeshMap:
             tiles=t["tiles"],
             ground=ground,
             meta=meta,
+            drive_xy=drive,
             source_dir=map_dir,
         )
 
@@ -716,6 +733,23 @@ def read_ply_binary(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | No
     if vertices is None or faces is None:
         raise InputError(f"{path}: PLY needs a 'vertex' and a 'face' element")
     return vertices, faces, colours
+
+
+def thin_path(xy, spacing_m: float) -> np.ndarray:
+    """The points of a path ``(N, 2)`` kept so that consecutive kept points are at least ``spacing_m``
+    apart (the first and last point always kept); non-finite points are dropped."""
+    xy = np.asarray(xy, np.float64).reshape(-1, 2)
+    xy = xy[np.isfinite(xy).all(axis=1)]
+    if len(xy) <= 2:
+        return xy.copy()
+    keep = [0]
+    last = xy[0]
+    for k in range(1, len(xy) - 1):
+        if np.hypot(*(xy[k] - last)) >= spacing_m:
+            keep.append(k)
+            last = xy[k]
+    keep.append(len(xy) - 1)
+    return xy[keep]
 
 
 # ---------------------------------------------------------------------------------------------- file helpers

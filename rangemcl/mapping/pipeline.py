@@ -25,7 +25,7 @@ from rangemcl.config import write_config
 from rangemcl.dataset import Sequence, load_sequence
 from rangemcl.errors import InputError
 from rangemcl.mapping.ground import label_ground
-from rangemcl.mapping.meshmap import MeshMap
+from rangemcl.mapping.meshmap import MeshMap, thin_path
 from rangemcl.mapping.normals import scan_normals
 from rangemcl.mapping.poisson import poisson_mesh, transfer_labels
 from rangemcl.mapping.simplify import simplify_ground
@@ -359,6 +359,7 @@ def build_map(
             "created_by": "rangemcl build-map",
         }
         the_map = MeshMap.from_mesh(vertices, faces, is_ground, tile_size_m=settings.tiles.size_m, meta=meta)
+        the_map.drive_xy = thin_path(seq.poses[:, :2, 3], 1.0)
         report.triangles = the_map.n_triangles
         the_map.save(out_dir)
         write_config(settings, out_dir / "config.yaml")

@@ -1,0 +1,108 @@
+"""The paper's localization metrics for an estimated trajectory against ground truth.
+
+* **Success**: the location error is below 5 m at every 100th frame after convergence (the convergence
+  frame itself, then every 100th frame after it), and the filter converged at all.
+* **Location RMSE** over (x, y) and **yaw RMSE** in degrees, over the frames from convergence on.
+* **Frames to converge**: from the first frame of the run.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from rangemcl.dataset import read_poses_txt
+from rangemcl.errors import InputError
+from rangemcl.particles import pose2d, wrap_angle
+
+
+def pose_errors(estimate_xyyaw: np.ndarray, truth_xyyaw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Location errors (m) and absolute yaw errors (deg) of ``(N, 3)`` estimates against ``(N, 3)`` truth."""
+    e = np.asarray(estimate_xyyaw, np.float64)
+    t = np.asarray(truth_xyyaw, np.float64)
+    if e.shape != t.shape or e.ndim != 2 or e.shape[1] != 3:
+        raise InputError(f"estimate {e.shape} and truth {t.shape} must both be (N, 3) x, y, yaw")
+    loc = np.hypot(e[:, 0] - t[:, 0], e[:, 1] - t[:, 1])
+    yaw = np.degrees(np.abs(wrap_angle(e[:, 2] - t[:, 2])))
+    return loc, yaw
+
+
+def localization_metrics(
+    estimate_xyyaw: np.ndarray,
+    truth_xyyaw: np.ndarray,
+    converged_frame: int | None,
+    *,
+    check_every: int = 100,
+    success_m: float = 5.0,
+) -> dict:
+    """The metrics of the module docstring as a JSON-ready dict (NaN-free: missing values are None)."""
+    loc, yaw = pose_errors(estimate_xyyaw, truth_xyyaw)
+    n = len(loc)
+    out: dict = {
+        "frames": n,
+        "converged": converged_frame is not None,
+        "converged_frame": converged_frame,
+        "frames_to_converge": converged_frame,
+        "success_threshold_m": success_m,
+        "check_every": check_every,
+    }
+    if converged_frame is None or not 0 <= converged_frame < n:
+        out.update(success=False, checked_frames=[], location_rmse_m=None, yaw_rmse_deg=None)
+        return out
+    checks = list(range(converged_frame, n, check_every))
+    after = slice(converged_frame, n)
+    out.update(
+        success=bool(np.all(loc[checks] < success_m)),
+        checked_frames=checks,
+        max_error_at_checks_m=float(loc[checks].max()),
+        location_rmse_m=float(np.sqrt(np.mean(loc[after] ** 2))),
+        yaw_rmse_deg=float(np.sqrt(np.mean(yaw[after] ** 2))),
+        location_median_m=float(np.median(loc[after])),
+        location_max_m=float(loc[after].max()),
+        yaw_max_deg=float(yaw[after].max()),
+        final_location_error_m=float(loc[-1]),
+    )
+    return out
+
+
+def xyyaw_of(poses: np.ndarray) -> np.ndarray:
+    """``(N, 3)`` x, y, yaw of ``(N, 4, 4)`` poses."""
+    return np.array([pose2d(T) for T in np.asarray(poses, np.float64)]).reshape(-1, 3)
+
+
+def evaluate_results(results_dir, gt_path, *, check_every: int = 100, success_m: float = 5.0) -> dict:
+    """Metrics of a ``rangemcl localize`` results folder against a ground-truth ``poses.txt`` (the same
+    convention as the sequence's, so the folder's ``estimate_kitti.txt`` compares line by line)."""
+    results_dir = Path(results_dir)
+    spath = results_dir / "summary.json"
+    epath = results_dir / "estimate_kitti.txt"
+    for p in (spath, epath):
+        if not p.is_file():
+            raise InputError(f"{p}: missing (is {results_dir} a `rangemcl localize` results folder?)")
+    try:
+        summary = json.loads(spath.read_text())
+    except (OSError, ValueError) as err:
+        raise InputError(f"{spath}: cannot read ({err})") from None
+    est = read_poses_txt(epath)
+    gt = read_poses_txt(gt_path)
+    first = int(summary.get("first_frame", 0))
+    if len(gt) < first + len(est):
+        raise InputError(
+            f"{gt_path}: has {len(gt)} poses but the run estimated frames {first}..{first + len(est) - 1}"
+        )
+    Tr = np.asarray(summary.get("calib_Tr", np.eye(4).tolist()), np.float64)
+    est_l = est @ Tr
+    gt_l = gt[first : first + len(est)] @ Tr
+    conv = summary.get("converged_frame")
+    conv = None if conv is None else int(conv) - first
+    metrics = localization_metrics(
+        xyyaw_of(est_l), xyyaw_of(gt_l), conv, check_every=check_every, success_m=success_m
+    )
+    if metrics["converged_frame"] is not None:
+        metrics["converged_frame"] += first
+    metrics["first_frame"] = first
+    metrics["ground_truth"] = str(gt_path)
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in metrics.items()}

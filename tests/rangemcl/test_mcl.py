@@ -1,0 +1,352 @@
+"""The Monte Carlo localizer on a tiny synthetic town: global convergence, tracking, recovery after a
+teleport, de-skewing and levelling of scans, SE(2) algebra, settings checks, and the results folder of
+``localize_sequence`` checked against ground truth."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from rangemcl import meshgen
+from rangemcl.dataset import SequenceWriter
+from rangemcl.errors import InputError
+from rangemcl.evaluate import evaluate_results, localization_metrics
+from rangemcl.localize import RunOptions, localize_sequence
+from rangemcl.mapping.meshmap import MeshMap
+from rangemcl.mcl import (
+    LocalizerSettings,
+    MonteCarloLocalizer,
+    ObservationSettings,
+    drivable_cells,
+    prepare_rays,
+    rotation_roll_pitch,
+    se2_between,
+    se2_compose,
+)
+from rangemcl.rangeimage import RangeImageGeometry
+from rangemcl.raycast import RayCaster
+from rangemcl.sensors import load_spec
+
+HEIGHT = 1.73
+
+
+@pytest.fixture(scope="module")
+def world():
+    town = meshgen.town(
+        seed=5, size_m=100.0, n_buildings=18, n_poles=25, facade_cell_m=2.0, ground_cell_m=2.0
+    )
+    v, f = town.merged()
+    caster = RayCaster(threads=2)
+    caster.add_mesh(v, f, name="town")
+    road = float(town.road_xy[0])
+    # an L-shaped drive: east along one road, then north along a crossing road
+    xs = np.arange(-40.0, float(town.road_xy[1]), 0.6)
+    leg1 = np.column_stack([xs, np.full_like(xs, road - 2.0), np.zeros_like(xs)])
+    x_turn = float(town.road_xy[1]) + 2.0
+    ys = np.arange(road - 2.0, 45.0, 0.6)
+    leg2 = np.column_stack([np.full_like(ys, x_turn), ys, np.full_like(ys, np.pi / 2)])
+    path = np.vstack([leg1, leg2])
+    m = MeshMap.from_mesh(v, f, tile_size_m=50.0, meta={"sensor_height_m": HEIGHT})
+    m.drive_xy = path[::3, :2]
+    geo = RangeImageGeometry.for_spec(load_spec("hdl-32e").with_columns(180))
+    return town, caster, m, path, geo
+
+
+def scan_at(town, caster, geo, pose, roll_pitch=(0.0, 0.0)):
+    """Points in the sensor frame of a sensor at ``pose`` (x, y, yaw), tilted by roll and pitch."""
+    x, y, yaw = pose
+    z = float(town.ground_height(x, y)) + HEIGHT
+    c, s = math.cos(yaw), math.sin(yaw)
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]) @ rotation_roll_pitch(*roll_pitch)
+    d = geo.directions.reshape(-1, 3)
+    hits = caster.cast(np.array([x, y, z]), d @ R.T, 80.0)
+    return (d[hits.hit] * hits.ranges[hits.hit, None]).astype(np.float32)
+
+
+def small_settings(**obs) -> LocalizerSettings:
+    s = LocalizerSettings()
+    s.particles.global_count = 3000
+    s.particles.converged_count = 60
+    s.observation = ObservationSettings(rays=150, max_range_m=60.0, **obs)
+    return s
+
+
+def run(loc, town, caster, geo, path, odo_noise, rng, truth_at=None, frames=None):
+    """Drive the filter along ``path`` (truth ``truth_at(k)``, default the path) with odometry from the
+    path plus noise; return estimates and step infos."""
+    truth_at = truth_at or (lambda k: path[k])
+    est, infos = [], []
+    for k in range(frames or len(path)):
+        delta = se2_between(path[k - 1], path[k]) if k else np.zeros(3)
+        delta = delta + rng.normal(0, odo_noise, 3) * (k > 0)
+        info = loc.step(delta, scan_at(town, caster, geo, truth_at(k)))
+        est.append(info.estimate)
+        infos.append(info)
+    return np.array(est), infos
+
+
+def errors(est, truth):
+    loc = np.hypot(est[:, 0] - truth[:, 0], est[:, 1] - truth[:, 1])
+    yaw = np.degrees(np.abs((est[:, 2] - truth[:, 2] + np.pi) % (2 * np.pi) - np.pi))
+    return loc, yaw
+
+
+def test_global_localization_converges_on_a_tiny_town(world):
+    town, caster, m, path, geo = world
+    loc = MonteCarloLocalizer(m, small_settings(sigma_m=0.5, cap_m=1.0), seed=1, caster=caster)
+    loc.spread()
+    assert len(loc.particles) == 3000
+    est, infos = run(loc, town, caster, geo, path, [0.01, 0.005, 0.002], np.random.default_rng(2))
+    conv = next(k for k, i in enumerate(infos) if i.converged)
+    assert infos[-1].particles == 60  # reduced once converged
+    assert conv < len(path) - 30
+    loc_err, yaw_err = errors(est[conv + 10 :], path[conv + 10 :])
+    assert np.sqrt(np.mean(loc_err**2)) < 0.5
+    assert np.sqrt(np.mean(yaw_err**2)) < 1.5
+    assert loc_err[-10:].max() < 0.35
+    assert not any(i.recovered for i in infos)
+
+
+def test_tracking_follows_and_recovers_after_a_teleport(world):
+    town, caster, m, path, geo = world
+    jump = 40  # from this frame on the car is elsewhere, but its odometry says it just drove on
+    offset = np.array([0.0, 0.0, 0.0])
+    other = path[len(path) - 100 :]  # the second leg, 90 degrees turned
+    frames = jump + 100
+
+    def truth_at(k):
+        return path[k] if k < jump else other[k - jump] + offset
+
+    s = small_settings(sigma_m=0.5, cap_m=1.0)
+    loc = MonteCarloLocalizer(m, s, seed=3, caster=caster)
+    loc.start_at(path[0])
+    assert loc.converged and len(loc.particles) == s.particles.tracking_count
+    rng = np.random.default_rng(4)
+    est, infos = [], []
+    for k in range(frames):
+        a, b = (path[k - 1], path[k]) if k < jump else (other[max(k - jump - 1, 0)], other[k - jump])
+        delta = (se2_between(a, b) if k else np.zeros(3)) + rng.normal(0, [0.01, 0.005, 0.002]) * (k > 0)
+        if k == jump:  # the odometry sees an ordinary step, not the teleport
+            delta = se2_between(path[k - 1], path[k])
+        info = loc.step(delta, scan_at(town, caster, geo, truth_at(k)))
+        est.append(info.estimate)
+        infos.append(info)
+    est = np.array(est)
+    truth = np.array([truth_at(k) for k in range(frames)])
+    loc_err, _ = errors(est, truth)
+    assert loc_err[:jump].max() < 0.5  # tracking
+    assert loc_err[jump] > 20  # kidnapped
+    recovered_at = [k for k, i in enumerate(infos) if i.recovered]
+    assert recovered_at and jump <= recovered_at[0] < jump + 15
+    assert infos[recovered_at[0]].particles == s.particles.global_count
+    assert loc.recoveries >= 1
+    assert infos[-1].converged
+    assert loc_err[-10:].max() < 0.5  # relocalized
+
+
+def test_true_pose_scores_above_perturbed_poses_through_the_filter(world):
+    town, caster, m, path, geo = world
+    loc = MonteCarloLocalizer(m, small_settings(), seed=0, caster=caster)
+    k = 30
+    rays = prepare_rays(
+        scan_at(town, caster, geo, path[k]), loc.settings.observation, np.random.default_rng(0)
+    )
+    offsets = np.array([[0, 0, 0], [0.5, 0, 0], [0, 0.5, 0], [0, 0, 0.05], [2, 1, 0], [0, 0, 0.3]])
+    d = loc.residuals(rays, path[k] + offsets)
+    assert d[0] < 0.05 and (d[1:] > d[0] + 0.05).all()
+
+
+def test_prepare_rays_deskews_with_the_frame_motion():
+    """Points fired from a moving sensor, de-skewed, land where a sensor at the stamp pose sees them."""
+    rng = np.random.default_rng(0)
+    world_pts = np.column_stack(
+        [rng.uniform(-30, 30, 500), rng.uniform(-30, 30, 500), rng.uniform(-1, 3, 500)]
+    )
+    world_pts = world_pts[np.hypot(world_pts[:, 0], world_pts[:, 1]) > 5]
+    motion = np.array([1.2, 0.1, 0.15])  # over one 0.1 s frame, in the previous stamp's pose
+    prev = np.array([0.0, 0.0, 0.0])
+    end = se2_compose(prev, motion)
+    t = rng.uniform(-0.1, 0.0, len(world_pts))  # firing times relative to the stamp
+    share = 1 + t / 0.1
+    pts = []
+    for p, a in zip(world_pts, share, strict=True):
+        pose = a * motion  # uniform motion, as the de-skew assumes
+        rel = se2_between(pose, np.array([p[0], p[1], 0.0]))
+        pts.append([rel[0], rel[1], p[2]])
+    pts = np.array(pts, np.float32)
+    settings = ObservationSettings(rays=10_000, min_range_m=0.1, max_range_m=100.0)
+    rays = prepare_rays(pts, settings, rng, fire_time_s=t, frame_period_s=0.1, frame_motion=motion)
+    got = rays.directions * rays.ranges[:, None]
+    want = np.array([[*se2_between(end, np.array([p[0], p[1], 0.0]))[:2], p[2]] for p in world_pts])
+    np.testing.assert_allclose(got, want, atol=2e-3)
+    raw = prepare_rays(
+        pts, ObservationSettings(rays=10_000, min_range_m=0.1, max_range_m=100.0, deskew=False), rng
+    )
+    assert np.abs(raw.directions * raw.ranges[:, None] - want).max() > 0.5  # the skew was real
+
+
+def test_prepare_rays_levels_with_roll_and_pitch_and_filters():
+    rng = np.random.default_rng(1)
+    roll, pitch = 0.05, -0.08
+    level = rng.normal(0, 10, (300, 3))
+    R = rotation_roll_pitch(roll, pitch)
+    tilted = (level @ R).astype(np.float32)  # what a tilted sensor measures: R^T p
+    settings = ObservationSettings(rays=10_000, min_range_m=0.0, max_range_m=1e9)
+    rays = prepare_rays(tilted, settings, rng, roll_pitch=(roll, pitch))
+    np.testing.assert_allclose(rays.directions * rays.ranges[:, None], level, atol=1e-4)
+    bad = tilted.copy()
+    bad[:50] = np.nan
+    bad[50:60] = 0.0
+    rays = prepare_rays(bad, ObservationSettings(rays=100, min_range_m=0.5, max_range_m=1e9), rng)
+    assert len(rays.ranges) == 100 and rays.valid_points == 240 and np.isfinite(rays.ranges).all()
+    assert prepare_rays(np.full((10, 3), np.nan, np.float32), settings, rng) is None
+    assert prepare_rays(np.zeros((0, 3), np.float32), settings, rng) is None
+
+
+def test_scan_without_valid_points_only_predicts(world):
+    town, caster, m, path, geo = world
+    loc = MonteCarloLocalizer(m, small_settings(), seed=0, caster=caster)
+    loc.start_at(path[0])
+    info = loc.step(np.array([1.0, 0.0, 0.0]), np.full((100, 3), np.nan, np.float32))
+    assert info.updated is False and info.skipped_scan is True
+    np.testing.assert_allclose(info.estimate[:2], path[0, :2] + [1.0, 0.0], atol=0.3)
+    info = loc.step(np.array([0.05, 0.0, 0.0]), None)  # below the update distance: no update due
+    assert not info.updated and not info.skipped_scan
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_se2_compose_and_between_are_inverse(seed):
+    rng = np.random.default_rng(seed)
+    a = rng.uniform([-50, -50, -np.pi], [50, 50, np.pi], (20, 3))
+    b = rng.uniform([-50, -50, -np.pi], [50, 50, np.pi], (20, 3))
+    np.testing.assert_allclose(se2_compose(a, se2_between(a, b)), b, atol=1e-9)
+    np.testing.assert_allclose(se2_between(a, a), 0, atol=1e-12)
+
+
+def test_settings_are_checked(world):
+    _, caster, m, _, _ = world
+    for key, value in [("sigma_m", 0.0), ("rays", 0), ("margin_m", -1.0), ("cap_m", 0.0)]:
+        s = LocalizerSettings()
+        setattr(s.observation, key, value)
+        with pytest.raises(InputError, match=f"observation.{key}"):
+            MonteCarloLocalizer(m, s, caster=caster)
+    s = LocalizerSettings()
+    s.particles.resample_neff_ratio = 1.5
+    with pytest.raises(InputError, match="resample_neff_ratio"):
+        s.check()
+    loc = MonteCarloLocalizer(m, LocalizerSettings(), caster=caster)
+    with pytest.raises(InputError, match="no particles"):
+        loc.step(np.zeros(3), None)
+    with pytest.raises(InputError, match="outside the map"):
+        loc.start_at([5000.0, 0.0, 0.0])
+
+
+def test_spread_covers_the_drive_with_yaw_along_it(world):
+    _, caster, m, path, _ = world
+    s = LocalizerSettings()
+    area = drivable_cells(m, s.init)
+    assert area.headings is not None and len(area.corners) > 100
+    loc = MonteCarloLocalizer(m, s, seed=0, caster=caster)
+    loc.spread(5000)
+    p = loc.particles
+    from scipy.spatial import cKDTree
+
+    dist, _ = cKDTree(m.drive_xy).query(p[:, :2])
+    assert dist.max() < s.init.drive_radius_m + 1.5
+    # yaw: most particles point along the road they are on (east-west or north-south here)
+    along = np.minimum(np.abs(np.sin(p[:, 2])), np.abs(np.cos(p[:, 2])))
+    assert np.mean(along < np.sin(np.radians(45))) > 0.8
+    m2 = MeshMap.from_mesh(m.vertices, m.faces, m.is_ground, tile_size_m=50.0)  # no drive: all ground cells
+    assert drivable_cells(m2, s.init).headings is None
+    assert len(drivable_cells(m2, s.init).corners) > len(area.corners)
+
+
+def test_metrics_follow_the_papers_definition():
+    truth = np.zeros((350, 3))
+    est = np.zeros((350, 3))
+    est[:50, 0] = 100.0  # searching
+    est[50:, 0] = 0.3
+    est[50:, 2] = np.radians(2.0)
+    m = localization_metrics(est, truth, 50)
+    assert m["success"] and m["checked_frames"] == [50, 150, 250]
+    assert m["location_rmse_m"] == pytest.approx(0.3) and m["yaw_rmse_deg"] == pytest.approx(2.0)
+    est[250, 0] = 6.0  # a checked frame above 5 m fails the run
+    assert not localization_metrics(est, truth, 50)["success"]
+    est[250, 0] = 0.3
+    est[251, 0] = 6.0  # an unchecked frame does not, but counts in the RMSE
+    m2 = localization_metrics(est, truth, 50)
+    assert m2["success"] and m2["location_rmse_m"] > m["location_rmse_m"]
+    assert localization_metrics(est, truth, None)["success"] is False
+
+
+def write_sequence(root, town, caster, geo, path, *, odometry=True, nan_frames=(), rng=None):
+    rng = rng or np.random.default_rng(0)
+    with SequenceWriter(root, meta={"scene": "tiny synthetic town"}) as w:
+        odo = np.zeros(3)
+        for k, pose in enumerate(path):
+            if k:
+                odo = se2_compose(odo, se2_between(path[k - 1], pose) + rng.normal(0, [0.01, 0.005, 0.002]))
+            pts = scan_at(town, caster, geo, pose)
+            if k in nan_frames:
+                pts = np.full_like(pts, np.nan)
+            T = np.eye(4)
+            c, s = math.cos(pose[2]), math.sin(pose[2])
+            T[:2, :2] = [[c, -s], [s, c]]
+            T[:3, 3] = (pose[0], pose[1], float(town.ground_height(pose[0], pose[1])) + HEIGHT)
+            To = np.eye(4)
+            c, s = math.cos(odo[2]), math.sin(odo[2])
+            To[:2, :2] = [[c, -s], [s, c]]
+            To[:2, 3] = odo[:2]
+            w.add_frame(pts, pose=T, time_s=0.1 * k, odometry=To if odometry else None)
+    return root
+
+
+def test_localize_sequence_writes_results_checked_against_truth(world, tmp_path):
+    town, caster, m, path, geo = world
+    seq = write_sequence(tmp_path / "seq", town, caster, geo, path[:60], nan_frames=(20,))
+    m.save(tmp_path / "map")
+    s = small_settings(sigma_m=0.5, cap_m=1.0)
+    out = tmp_path / "res"
+    summary = localize_sequence(seq, tmp_path / "map", out, s, RunOptions(mode="tracking", seed=0, threads=2))
+    for name in (
+        "config.yaml",
+        "frames.csv",
+        "estimate_kitti.txt",
+        "estimate_tum.txt",
+        "summary.json",
+        "metrics.json",
+        "particles.npz",
+        "trajectory.png",
+        "error.png",
+        "particles.png",
+    ):
+        assert (out / name).is_file(), name
+    assert summary["frames"] == 60 and summary["skipped_scans"] == 1 and summary["converged_frame"] == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["success"] and metrics["location_rmse_m"] < 0.3 and metrics["yaw_rmse_deg"] < 1.5
+    again = evaluate_results(out, seq / "poses.txt")
+    assert again["location_rmse_m"] == pytest.approx(metrics["location_rmse_m"], rel=1e-6)
+    assert len((out / "frames.csv").read_text().splitlines()) == 61
+    tum = (out / "estimate_tum.txt").read_text().splitlines()
+    assert len(tum) == 60 and len(tum[0].split()) == 8
+
+
+def test_localize_sequence_bad_inputs(world, tmp_path):
+    town, caster, m, path, geo = world
+    seq = write_sequence(tmp_path / "seq", town, caster, geo, path[:12], odometry=False)
+    m.save(tmp_path / "map")
+    opts = RunOptions(mode="tracking", threads=2, plots=False)
+    with pytest.raises(InputError, match="no odometry.txt.*--odometry-from-poses"):
+        localize_sequence(seq, tmp_path / "map", tmp_path / "r1", small_settings(), opts)
+    opts.odometry_from_poses = True
+    s = localize_sequence(seq, tmp_path / "map", tmp_path / "r2", small_settings(), opts)
+    assert s["odometry_source"].startswith("poses.txt")
+    far = MeshMap.from_mesh(m.vertices + [5000.0, 0, 0], m.faces, m.is_ground)
+    far.save(tmp_path / "far")
+    with pytest.raises(InputError, match="outside the map"):
+        localize_sequence(seq, tmp_path / "far", tmp_path / "r3", small_settings(), opts)
+    with pytest.raises(InputError, match="map folder does not exist"):
+        localize_sequence(seq, tmp_path / "nomap", tmp_path / "r4", small_settings(), opts)
