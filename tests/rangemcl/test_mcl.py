@@ -207,7 +207,7 @@ def test_prepare_rays_levels_with_roll_and_pitch_and_filters():
 
 
 def test_scan_without_valid_points_only_predicts(world):
-    town, caster, m, path, geo = world
+    _, caster, m, path, _ = world
     loc = MonteCarloLocalizer(m, small_settings(), seed=0, caster=caster)
     loc.start_at(path[0])
     info = loc.step(np.array([1.0, 0.0, 0.0]), np.full((100, 3), np.nan, np.float32))
@@ -245,7 +245,7 @@ def test_settings_are_checked(world):
 
 
 def test_spread_covers_the_drive_with_yaw_along_it(world):
-    _, caster, m, path, _ = world
+    _, caster, m, _, _ = world
     s = LocalizerSettings()
     area = drivable_cells(m, s.init)
     assert area.headings is not None and len(area.corners) > 100
@@ -339,12 +339,12 @@ def test_localize_sequence_bad_inputs(world, tmp_path):
     seq = write_sequence(tmp_path / "seq", town, caster, geo, path[:12], odometry=False)
     m.save(tmp_path / "map")
     opts = RunOptions(mode="tracking", threads=2, plots=False)
-    with pytest.raises(InputError, match="no odometry.txt.*--odometry-from-poses"):
+    with pytest.raises(InputError, match=r"no odometry\.txt.*--odometry-from-poses"):
         localize_sequence(seq, tmp_path / "map", tmp_path / "r1", small_settings(), opts)
     opts.odometry_from_poses = True
     s = localize_sequence(seq, tmp_path / "map", tmp_path / "r2", small_settings(), opts)
     assert s["odometry_source"].startswith("poses.txt")
-    far = MeshMap.from_mesh(m.vertices + [5000.0, 0, 0], m.faces, m.is_ground)
+    far = MeshMap.from_mesh(m.vertices + np.array([5000.0, 0, 0]), m.faces, m.is_ground)
     far.save(tmp_path / "far")
     with pytest.raises(InputError, match="outside the map"):
         localize_sequence(seq, tmp_path / "far", tmp_path / "r3", small_settings(), opts)
