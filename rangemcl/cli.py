@@ -223,14 +223,6 @@ def map_quality_cmd(
         json_out.write_text(json.dumps(q, indent=2))
 
 
-def main() -> None:
-    run_app(app, "rangemcl")
-
-
-if __name__ == "__main__":
-    main()
-
-
 @app.command()
 def localize(
     seq_dir: Path = typer.Argument(..., help="A sequence folder (KITTI layout) with odometry."),
@@ -333,3 +325,11 @@ def evaluate(
         )
     )
     typer.echo(_metrics_line(m))
+
+
+def main() -> None:
+    run_app(app, "rangemcl")
+
+
+if __name__ == "__main__":
+    main()

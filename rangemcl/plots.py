@@ -67,7 +67,8 @@ def plot_localization(
     if converged_frame is not None:
         ax.plot(est[k0:, 0], est[k0:, 1], "-", c="tab:red", lw=1.0, label="estimate (after convergence)")
         ax.plot(*est[k0, :2], "o", c="tab:red", ms=5)
-    ax.legend(loc="upper right")
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="upper right")
     ax.set_title("rangemcl localize: trajectory")
     fig.tight_layout()
     written.append(out_dir / "trajectory.png")
@@ -87,14 +88,18 @@ def plot_localization(
             if converged_frame is not None:
                 a.axvline(converged_frame, c="k", ls="--", lw=0.8, label="converged")
             a.grid(True, which="both", alpha=0.3)
-        a1.legend(loc="upper right")
+        if converged_frame is not None:
+            a1.legend(loc="upper right")
         fig.tight_layout()
         written.append(out_dir / "error.png")
         fig.savefig(written[-1], dpi=130)
         plt.close(fig)
 
     if snapshots:
-        names = sorted(snapshots)[:6]
+        names = sorted(snapshots)
+        if len(names) > 6:  # the first frames of the search, the convergence, the end
+            keep = {*[n for n in names if n.endswith("converged")][:1], names[-1]}
+            names = sorted({*[n for n in names if n not in keep][: 6 - len(keep)], *keep})
         cols = min(3, len(names))
         rows = int(np.ceil(len(names) / cols))
         fig, axes = plt.subplots(rows, cols, figsize=(5 * cols, 5 * rows), squeeze=False)

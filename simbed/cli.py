@@ -102,6 +102,34 @@ def export_mesh(
 
 
 @app.command()
+def demo(
+    out: Path = typer.Option(Path("out/demo"), help="Folder for the drives, the map and the results."),
+    seed: int = typer.Option(0, help="Seed of the drives and of the localizer."),
+    device: str = typer.Option("cpu", help="Warp device: cpu or cuda."),
+    test_frames: int = typer.Option(400, help="Frames of the test drive."),
+    particles: int = typer.Option(10000, help="Particles for global localization."),
+) -> None:
+    """Map town_small, record a test drive with other parked cars and moving actors, localize globally in
+    the map, and print the metrics (plots in OUT/results)."""
+    from rangemcl.cli import _metrics_line
+    from simbed.demo import DemoSettings, run_demo
+
+    s = run_demo(
+        out,
+        DemoSettings(seed=seed, test_frames=test_frames, particles=particles),
+        device=device,
+        say=typer.echo,
+    )
+    m = s.get("metrics") or {}
+    typer.echo(
+        f"demo done in {s['demo_seconds']['total']:.0f} s: converged at frame {s['converged_frame']}, "
+        f"{s['hz_after_convergence'] or 0:.1f} Hz after convergence"
+    )
+    typer.echo(_metrics_line(m))
+    typer.echo(f"plots: {out / 'results'}/trajectory.png, error.png, particles.png")
+
+
+@app.command()
 def render(
     out: Path = typer.Option(..., help="PNG file to write."),
     scene: str = typer.Option("town_small", help="Scene name in scenes/ or an MJCF file."),

@@ -1,0 +1,160 @@
+"""The whole pipeline on the small town: a recorded mapping drive becomes a map, a second drive along the
+same roads (other parked cars, moving actors, its own seed) is localized in it, globally and by
+tracking, and the estimates are checked against the recording's ground truth; the demo's plumbing on a
+few frames; and the CLI's answers."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from rangemcl.localize import RunOptions, localize_sequence
+from rangemcl.mapping.pipeline import MapSettings, build_map
+from rangemcl.mcl import LocalizerSettings
+from simbed.record import record
+
+
+@pytest.fixture(scope="module")
+def town(tmp_path_factory):
+    root = tmp_path_factory.mktemp("loc_e2e")
+    record("town_small", "mapping", "os1-64", root / "map_run", frames=60, seed=3, progress=False)
+    s = MapSettings()
+    s.poisson.depth = 8
+    s.workers = 2
+    s.scans.every_nth = 2
+    build_map(root / "map_run", root / "map", s)
+    record(
+        "town_small",
+        "mapping",
+        "os1-64",
+        root / "test_run",
+        frames=60,
+        seed=8,
+        variant=1,
+        actors=4,
+        progress=False,
+    )
+    return root
+
+
+def small() -> LocalizerSettings:
+    s = LocalizerSettings()
+    s.particles.global_count = 3000
+    s.observation.rays = 200
+    return s
+
+
+def test_tracking_in_a_built_map_against_ground_truth(town):
+    out = town / "tracking"
+    summary = localize_sequence(
+        town / "test_run",
+        town / "map",
+        out,
+        small(),
+        RunOptions(mode="tracking", seed=0, threads=2, plots=False),
+    )
+    m = json.loads((out / "metrics.json").read_text())
+    assert summary["recoveries"] == 0
+    assert m["success"] and m["location_rmse_m"] < 0.25 and m["yaw_rmse_deg"] < 1.0
+
+
+def test_global_localization_in_a_built_map_against_ground_truth(town):
+    out = town / "global"
+    summary = localize_sequence(
+        town / "test_run", town / "map", out, small(), RunOptions(mode="global", seed=1, threads=2)
+    )
+    m = json.loads((out / "metrics.json").read_text())
+    assert summary["converged_frame"] is not None and summary["converged_frame"] < 45
+    assert m["success"] and m["final_location_error_m"] < 0.5
+    assert (out / "particles.png").is_file() and (out / "trajectory.png").is_file()
+
+
+def test_cli_localize_and_evaluate(town):
+    out = town / "cli"
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "rangemcl.cli",
+            "localize",
+            str(town / "test_run"),
+            "--map",
+            str(town / "map"),
+            "--out",
+            str(out),
+            "--mode",
+            "tracking",
+            "--frames",
+            "15",
+            "--no-plots",
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert r.returncode == 0, r.stderr
+    assert "frames" in r.stdout and "metrics: success" in r.stdout
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "rangemcl.cli",
+            "evaluate",
+            str(out),
+            "--gt",
+            str(town / "test_run" / "poses.txt"),
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout.splitlines()[0])["success"] is True
+    # bad input: one line, exit status 2
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "rangemcl.cli",
+            "localize",
+            str(town / "test_run"),
+            "--map",
+            str(town / "nope"),
+            "--out",
+            str(town / "x"),
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "nope" in r.stderr
+    r = subprocess.run(
+        [sys.executable, "-m", "rangemcl.cli", "evaluate", str(town / "nothing"), "--gt", "poses.txt"],
+        capture_output=True,
+        text=True,
+    )
+    assert r.returncode == 2 and "summary.json" in r.stderr
+
+
+def test_demo_plumbing_on_a_few_frames(tmp_path):
+    from simbed.demo import DemoSettings, run_demo
+
+    lines: list[str] = []
+    s = DemoSettings(mapping_frames=30, map_every_nth=3, test_frames=20, actors=2, particles=300)
+    summary = run_demo(tmp_path / "demo", s, say=lines.append)
+    for name in (
+        "mapping_drive/meta.yaml",
+        "map/map.yaml",
+        "test_drive/meta.yaml",
+        "results/summary.json",
+        "results/metrics.json",
+        "results/trajectory.png",
+        "demo_summary.json",
+        "demo.yaml",
+    ):
+        assert (tmp_path / "demo" / name).is_file(), name
+    assert summary["frames"] == 20 and set(summary["demo_seconds"]) >= {"map", "localize", "total"}
+    assert any(line.startswith("[localize]") for line in lines)
+    again: list[str] = []
+    run_demo(tmp_path / "demo", s, say=again.append)  # finished steps are reused
+    assert any("reusing" in line for line in again)

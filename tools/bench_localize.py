@@ -1,0 +1,182 @@
+#!/usr/bin/env python3
+"""Localizer benchmark: frame rate after convergence (few particles) and seconds per frame before it
+(many particles), on a recorded drive in its map, with the same particle weighting done through Open3D's
+Embree ``RaycastingScene`` in the same run as the peer.
+
+    python tools/bench_localize.py --seq out/demo/test_drive --map out/demo/map
+    python tools/bench_localize.py --seq SEQ --map MAP --device cuda
+
+* after convergence: pose tracking from the first true pose with ``--few`` particles (default 100) over
+  ``--frames`` frames; per frame the whole step (scan read, de-skew, motion, weighting, resampling) is
+  timed; the median gives the frame rate.
+* before convergence: ``--many`` particles (default 10,000) spread over the map, weighted on ``--global-
+  frames`` frames; median seconds per update.
+* peer: the same rays of the same particles cast by Embree (all cores) and reduced in numpy, on the same
+  frames; ratio = Embree time / Warp time of the weighting (above 1: Warp is faster).
+
+Figures are medians; the machine is shared, so compare ratios within one run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import time
+
+import numpy as np
+
+
+def embree_residuals(scene, o3d, particles, z, rays, margin, cap):
+    """Eq. 5's mean residual per particle through Embree: all particles' rays in one batch."""
+    n, r = len(particles), len(rays.ranges)
+    c, s = np.cos(particles[:, 2]), np.sin(particles[:, 2])
+    d = rays.directions
+    dx = c[:, None] * d[None, :, 0] - s[:, None] * d[None, :, 1]
+    dy = s[:, None] * d[None, :, 0] + c[:, None] * d[None, :, 1]
+    dz = np.broadcast_to(d[None, :, 2], (n, r))
+    origin = np.broadcast_to(np.column_stack([particles[:, :2], z])[:, None, :], (n, r, 3))
+    batch = (
+        np.concatenate([origin, np.stack([dx, dy, dz], axis=-1)], axis=-1).reshape(-1, 6).astype(np.float32)
+    )
+    t = scene.cast_rays(o3d.core.Tensor(batch))["t_hit"].numpy().reshape(n, r)
+    limit = rays.ranges[None, :] + margin
+    res = np.where(t <= limit, np.abs(rays.ranges[None, :] - t), margin)
+    return np.minimum(res, cap).mean(axis=1)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seq", required=True, help="a recorded test drive (KITTI layout, with poses)")
+    ap.add_argument("--map", required=True, help="its map folder")
+    ap.add_argument("--frames", type=int, default=200, help="frames tracked with few particles")
+    ap.add_argument("--few", type=int, default=100)
+    ap.add_argument("--many", type=int, default=10000)
+    ap.add_argument("--global-frames", type=int, default=8)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--json", help="also write the figures here")
+    args = ap.parse_args()
+
+    import open3d as o3d
+
+    from rangemcl.dataset import load_sequence
+    from rangemcl.evaluate import xyyaw_of
+    from rangemcl.localize import _frame_period
+    from rangemcl.mapping.meshmap import MeshMap
+    from rangemcl.mcl import LocalizerSettings, MonteCarloLocalizer, prepare_rays, se2_between
+
+    seq = load_sequence(args.seq)
+    mesh_map = MeshMap.load(args.map)
+    odo, truth = xyyaw_of(seq.odometry), xyyaw_of(seq.poses)
+    period = _frame_period(seq)
+    settings = LocalizerSettings()
+    o = settings.observation
+    cap = np.inf if o.cap_m is None else o.cap_m
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        o3d.core.Tensor(mesh_map.vertices.astype(np.float32)),
+        o3d.core.Tensor(mesh_map.faces.astype(np.uint32)),
+    )
+    rng = np.random.default_rng(args.seed)
+    loc = MonteCarloLocalizer(mesh_map, settings, rng=rng, device=args.device, sensor_height_m=1.73)
+    n_frames = min(args.frames, len(seq))
+
+    # --- after convergence: whole steps with few particles ----------------------------------------------
+    loc.start_at(truth[0], args.few)
+    step_s, weigh_warp, weigh_embree, errors = [], [], [], []
+    for i in range(n_frames):
+        t0 = time.perf_counter()
+        delta = se2_between(odo[i - 1], odo[i]) if i else np.zeros(3)
+        pts = seq.scan(i)
+        fire = seq.point_meta(i).get("time_s")
+        rp = tuple(seq.imu_roll_pitch[i]) if seq.imu_roll_pitch is not None else None
+        info = loc.step(delta, pts, fire_time_s=fire, frame_period_s=period, roll_pitch=rp)
+        step_s.append(time.perf_counter() - t0)
+        errors.append(float(np.hypot(*(info.estimate[:2] - truth[i, :2]))))
+        if i % 10 == 5:  # the weighting alone, Warp and Embree on the same rays and particles
+            rays = prepare_rays(
+                pts, o, rng, fire_time_s=fire, frame_period_s=period, frame_motion=delta, roll_pitch=rp
+            )
+            z = loc.sensor_z(loc.particles[:, :2])
+            t1 = time.perf_counter()
+            dw = loc.residuals(rays)
+            t2 = time.perf_counter()
+            de = embree_residuals(scene, o3d, loc.particles, z, rays, o.margin_m, cap)
+            t3 = time.perf_counter()
+            weigh_warp.append(t2 - t1)
+            weigh_embree.append(t3 - t2)
+            assert np.allclose(dw, de, atol=2e-3), float(np.abs(dw - de).max())
+    after = {
+        "particles": args.few,
+        "frames": n_frames,
+        "step_median_s": statistics.median(step_s[5:]),
+        "hz": 1.0 / statistics.median(step_s[5:]),
+        "weighting_median_s_warp": statistics.median(weigh_warp),
+        "weighting_median_s_embree": statistics.median(weigh_embree),
+        "embree_over_warp": statistics.median(weigh_embree) / statistics.median(weigh_warp),
+        "tracking_error_median_m": statistics.median(errors),
+    }
+
+    # --- before convergence: updates with many particles ------------------------------------------------
+    gw, ge = [], []
+    loc.spread(args.many)
+    for i in np.linspace(0, len(seq) - 1, args.global_frames).astype(int):
+        pts = seq.scan(i)
+        rays = prepare_rays(
+            pts,
+            o,
+            rng,
+            fire_time_s=seq.point_meta(i).get("time_s"),
+            frame_period_s=period,
+            frame_motion=se2_between(odo[max(i - 1, 0)], odo[i]),
+            roll_pitch=tuple(seq.imu_roll_pitch[i]) if seq.imu_roll_pitch is not None else None,
+        )
+        loc.spread(args.many)
+        info = loc.step(
+            np.array([0.5, 0.0, 0.0]), pts, fire_time_s=seq.point_meta(i).get("time_s"), frame_period_s=period
+        )
+        gw.append(info.seconds)
+        z = loc.sensor_z(loc.particles[:, :2])
+        t1 = time.perf_counter()
+        embree_residuals(scene, o3d, loc.particles, z, rays, o.margin_m, cap)
+        ge.append(time.perf_counter() - t1)
+    before = {
+        "particles": args.many,
+        "updates": len(gw),
+        "update_median_s_warp": statistics.median(gw),
+        "weighting_median_s_embree": statistics.median(ge),
+        "embree_over_warp": statistics.median(ge) / statistics.median(gw),
+    }
+    out = {
+        "device": loc.caster.device,
+        "cores": os.cpu_count(),
+        "rays_per_particle": o.rays,
+        "map_triangles": mesh_map.n_triangles,
+        "after_convergence": after,
+        "before_convergence": before,
+    }
+    print(
+        f"device {out['device']}, {out['cores']} cores, {o.rays} rays per particle, "
+        f"map {mesh_map.n_triangles:,} triangles"
+    )
+    print(
+        f"after convergence ({args.few} particles, whole step): {after['hz']:.1f} Hz "
+        f"(median {1000 * after['step_median_s']:.1f} ms; target >= 20 Hz; paper 21.8 Hz on a GTX 1080 Ti); "
+        f"weighting Warp {1000 * after['weighting_median_s_warp']:.1f} ms vs Embree "
+        f"{1000 * after['weighting_median_s_embree']:.1f} ms (Embree/Warp {after['embree_over_warp']:.2f}); "
+        f"tracking error median {after['tracking_error_median_m']:.3f} m"
+    )
+    print(
+        f"before convergence ({args.many:,} particles): {before['update_median_s_warp']:.2f} s per frame "
+        f"(target <= 3 s; paper <= 56.7 s on a GTX 1080 Ti); Embree weighting "
+        f"{before['weighting_median_s_embree']:.2f} s (Embree/Warp {before['embree_over_warp']:.2f})"
+    )
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(out, fh, indent=2)
+
+
+if __name__ == "__main__":
+    main()
