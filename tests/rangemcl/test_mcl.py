@@ -350,3 +350,29 @@ def test_localize_sequence_bad_inputs(world, tmp_path):
         localize_sequence(seq, tmp_path / "far", tmp_path / "r3", small_settings(), opts)
     with pytest.raises(InputError, match="map folder does not exist"):
         localize_sequence(seq, tmp_path / "nomap", tmp_path / "r4", small_settings(), opts)
+
+
+def test_an_interrupted_run_keeps_what_it_computed(world, tmp_path, monkeypatch):
+    town, caster, m, path, geo = world
+    seq = write_sequence(tmp_path / "seq", town, caster, geo, path[:20])
+    m.save(tmp_path / "map")
+    real_step = MonteCarloLocalizer.step
+    calls = {"n": 0}
+
+    def step(self, *a, **k):
+        calls["n"] += 1
+        if calls["n"] == 13:
+            raise KeyboardInterrupt
+        return real_step(self, *a, **k)
+
+    monkeypatch.setattr(MonteCarloLocalizer, "step", step)
+    out = tmp_path / "res"
+    with pytest.raises(KeyboardInterrupt):
+        localize_sequence(
+            seq, tmp_path / "map", out, small_settings(), RunOptions(mode="tracking", threads=2)
+        )
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["interrupted"] is True and summary["frames"] == 12
+    assert len((out / "estimate_kitti.txt").read_text().splitlines()) == 12
+    assert json.loads((out / "metrics.json").read_text())["frames"] == 12
+    assert (out / "trajectory.png").is_file()
