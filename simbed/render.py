@@ -13,11 +13,21 @@ from rangemcl.errors import InputError
 def render_png(
     world, out: str | os.PathLike, *, camera: str | None = None, width: int = 1280, height: int = 960
 ):
-    """Render the world's current state to a PNG. Without ``camera``, a view from above and behind the
-    car (or the model's ``overview`` camera when there is no car)."""
+    """Render the world's current state to a PNG (see :func:`render_rgb`)."""
+    from PIL import Image
+
+    image = render_rgb(world, camera=camera, width=width, height=height)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(image).save(out)
+    return out
+
+
+def render_rgb(world, *, camera: str | None = None, width: int = 640, height: int = 480) -> np.ndarray:
+    """The world's current state as an ``(height, width, 3)`` uint8 image. Without ``camera``, a view from
+    above and behind the car (or an overview when there is no car)."""
     os.environ.setdefault("MUJOCO_GL", "egl")
     import mujoco
-    from PIL import Image
 
     model, data = world.model, world.data
     model.vis.global_.offwidth = max(model.vis.global_.offwidth, width)
@@ -43,9 +53,6 @@ def render_png(
             cam.lookat[:] = model.stat.center
             cam.elevation, cam.distance = -60.0, 1.5 * model.stat.extent
         renderer.update_scene(data, camera=cam)
-    image = renderer.render()
+    image = np.asarray(renderer.render()).copy()
     renderer.close()
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(np.asarray(image)).save(out)
-    return out
+    return image

@@ -14,7 +14,7 @@ from rangemcl.errors import InputError
 from rangemcl.sensors import LidarSpec
 from simbed.lidar import SimLidar, Sweep
 from simbed.routes import Route
-from simbed.vehicle import OdometryNoise, RouteFollower, WheelGyroOdometry
+from simbed.vehicle import OdometryNoise, RouteFollower, WheelGyroOdometry, wheel_torque
 from simbed.world import World
 
 
@@ -68,6 +68,7 @@ class Drive:
         self.chunks = max(1, int(chunks_per_sweep))
         self.dt = float(world.model.opt.timestep)
         self.frame_index = 0
+        self.manual: tuple[float, float] | None = None  # (speed m/s, steering rad) instead of the route
         x, y, yaw = route.start_pose()
         ground = float(world.ground_height(x, y))
         self.car.place(world.model, world.data, x, y, ground + 0.02, yaw)
@@ -83,6 +84,51 @@ class Drive:
             for a in self.car.drive:
                 d.ctrl[a] = -400.0 * self.car.speed(d)
             self.world.step()
+
+    def _control(self) -> None:
+        if self.manual is None:
+            self.controller.control(self.world.data, self.dt)
+            return
+        speed_mps, steer = self.manual
+        car, d = self.car, self.world.data
+        speed = car.speed(d)
+        torque = self.controller.kp * (speed_mps - speed)
+        for a in car.steer:
+            d.ctrl[a] = steer
+        for a, dof in zip(car.drive, car.rear_wheel_qvel, strict=True):
+            d.ctrl[a] = wheel_torque(torque, float(d.qvel[dof]), speed, car.wheel_radius_m)
+
+    def _physics_step(self) -> None:
+        self._control()
+        self.world.step()
+        self.odometry.step(self.world.data, self.dt)
+
+    def advance(self, seconds: float) -> None:
+        """Drive on for ``seconds`` without the LiDAR (physics, controller and odometry only)."""
+        end = self.world.time + float(seconds)
+        while self.world.time < end - 1e-9:
+            self._physics_step()
+
+    def teleport_ahead(self, distance_m: float) -> None:
+        """Kidnap the car: put it ``distance_m`` further along its route (at most 20 m before the route's
+        end), at rest, heading along the route. The odometry is not told."""
+        c = self.controller
+        target = min(c.cumlen[c.index] + float(distance_m), max(c.cumlen[-1] - 20.0, 0.0))
+        k = int(min(np.searchsorted(c.cumlen, target), len(c.points) - 2))
+        d = c.points[min(k + 4, len(c.points) - 1)] - c.points[k]
+        x, y = (float(t) for t in c.points[k])
+        self.car.place(
+            self.world.model,
+            self.world.data,
+            x,
+            y,
+            float(self.world.ground_height(x, y)) + 0.02,
+            float(np.arctan2(d[1], d[0])),
+        )
+        c.index = k
+        c.integral = 0.0
+        c._progress_mark = (c._time, c.progress_m)
+        self.odometry.resync(self.world.data)
 
     def sensor_pose(self) -> np.ndarray:
         return self.car.pose(self.world.data) @ self.spec.T_base_sensor
@@ -101,9 +147,7 @@ class Drive:
         for k in range(chunks):
             t_chunk_end = t_start + period * (k + 1) / chunks
             while world.time < t_chunk_end - 1e-9:
-                self.controller.control(world.data, self.dt)
-                world.step()
-                self.odometry.step(world.data, self.dt)
+                self._physics_step()
                 times.append(world.time)
                 poses.append(self.sensor_pose())
             world.sync_caster()

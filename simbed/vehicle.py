@@ -249,6 +249,11 @@ class WheelGyroOdometry:
         self._wheels = np.array([data.qpos[a] for a in self.car.rear_wheel_qpos])
         self.x = self.y = self.yaw = 0.0
 
+    def resync(self, data: mujoco.MjData) -> None:
+        """Take the wheels' current angles as the reference without moving the odometry pose (after the
+        car was placed somewhere else: its odometry does not see the jump)."""
+        self._wheels = np.array([data.qpos[a] for a in self.car.rear_wheel_qpos])
+
     def step(self, data: mujoco.MjData, dt: float) -> None:
         """Integrate one physics step."""
         wheels = np.array([data.qpos[a] for a in self.car.rear_wheel_qpos])
