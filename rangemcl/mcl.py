@@ -73,6 +73,7 @@ class MotionSettings:
 
 @dataclass
 class ObservationSettings:
+    model: str = "range"  # range (paper Eq. 5) | overlap | likelihood_field | histogram (rangemcl.models)
     sigma_m: float = 0.25  # σ_d of Eq. 5 (paper 5.0, reference code 2.0; chosen by measurement, README)
     rays: int = 500  # measured points cast per particle (a random subset of the valid ones)
     margin_m: float = 2.0  # rays end at measured range + margin; a miss counts as the margin
@@ -81,6 +82,13 @@ class ObservationSettings:
     max_range_m: float = 40.0  # as far as the map builder meshes (its scans.max_range_m)
     deskew: bool = True  # with per-point firing times and odometry
     level_with_imu: bool = True  # rotate the scan by the IMU's roll and pitch
+    overlap_tau_m: float = 0.3  # overlap model: a ray agrees within this
+    overlap_sigma: float = 0.1
+    histogram_bins: int = 50  # histogram model: bins over [0, max_range_m)
+    histogram_sigma: float = 0.05
+    field_voxel_m: float = 0.1  # likelihood field: voxel map resolution
+    field_sigma_m: float = 0.2
+    field_weight: float = 20.0  # log-likelihood = weight · mean per-ray log-likelihood
 
 
 @dataclass
@@ -93,7 +101,8 @@ class ConvergenceSettings:
 @dataclass
 class RecoverySettings:
     enabled: bool = True
-    min_residual_m: float = 0.3  # lost when the best particle's mean residual exceeds this ...
+    min_residual_m: float | None = None  # lost when the best particle's badness exceeds this (None: the
+    # model's floor, 0.3 m for the range model) ...
     factor: float = 2.5  # ... and this many times its median over the recent converged updates ...
     updates: int = 5  # ... for this many updates in a row
     history: int = 50  # converged updates remembered for the median
@@ -131,8 +140,20 @@ class LocalizerSettings:
             "recovery.updates": r.updates,
             "recovery.history": r.history,
         }
+        for key in (
+            "overlap_tau_m",
+            "overlap_sigma",
+            "histogram_bins",
+            "histogram_sigma",
+            "field_voxel_m",
+            "field_sigma_m",
+            "field_weight",
+        ):
+            positive[f"observation.{key}"] = getattr(o, key)
         if o.cap_m is not None:
             positive["observation.cap_m"] = o.cap_m
+        if r.min_residual_m is not None:
+            positive["recovery.min_residual_m"] = r.min_residual_m
         if self.sensor_height_m is not None:
             positive["sensor_height_m"] = self.sensor_height_m
         for key, value in positive.items():
@@ -152,7 +173,6 @@ class LocalizerSettings:
             "observation.min_range_m": o.min_range_m,
             "convergence.max_radius_m": c.max_radius_m,
             "convergence.compact_radius_m": c.compact_radius_m,
-            "recovery.min_residual_m": r.min_residual_m,
             "recovery.factor": r.factor,
             "init.drive_radius_m": self.init.drive_radius_m,
             "init.heading_sigma_deg": self.init.heading_sigma_deg,
@@ -173,6 +193,12 @@ class LocalizerSettings:
         if not 0 < p.estimate_best_share <= 1:
             raise InputError(
                 f"{where}: particles.estimate_best_share must be in (0, 1], got {p.estimate_best_share}"
+            )
+        from rangemcl.models import MODEL_NAMES
+
+        if o.model not in MODEL_NAMES:
+            raise InputError(
+                f"{where}: observation.model {o.model!r}: expected one of {', '.join(MODEL_NAMES)}"
             )
         if o.min_range_m >= o.max_range_m:
             raise InputError(f"{where}: observation.min_range_m must be below observation.max_range_m")
@@ -335,6 +361,9 @@ class MonteCarloLocalizer:
         self.model = ObservationModel(
             caster, sigma_m=o.sigma_m, margin_m=o.margin_m, cap_m=np.inf if o.cap_m is None else o.cap_m
         )
+        from rangemcl.models import make_model
+
+        self.scorer = make_model(o.model, caster, o, mesh_map)
         m = self.settings.motion
         self.noise = MotionNoise(m.rot_per_rot, m.rot_per_trans, m.trans_per_trans, m.trans_per_rot)
         self.init_cells = drivable_cells(mesh_map, self.settings.init)
@@ -482,9 +511,9 @@ class MonteCarloLocalizer:
         return self.model.mean_residuals(p, self.sensor_z(p[:, :2])).astype(np.float64)
 
     def _weigh(self, rays: ScanRays) -> dict:
-        d = self.residuals(rays)
-        self.log_w = self.log_w + self.model.log_likelihood(d)
-        best = float(d.min())
+        loglik, bad = self.scorer.score(rays, self.particles, self.sensor_z(self.particles[:, :2]))
+        self.log_w = self.log_w + loglik
+        best = float(bad.min())
         out = dict(updated=True, resampled=False, best_residual_m=best, skipped_scan=False, recovered=False)
         ps = self.settings.particles
         w = self.weights
@@ -539,10 +568,11 @@ class MonteCarloLocalizer:
         if not r.enabled:
             return False
         hist = self._best_history
+        floor = self.scorer.lost_floor if r.min_residual_m is None else r.min_residual_m
         if len(hist) >= min(5, r.history):
-            limit = max(r.min_residual_m, r.factor * float(np.median(hist)))
+            limit = max(floor, r.factor * float(np.median(hist)))
         else:  # just converged: no history yet, so judge against the floor (with some room)
-            limit = 1.5 * r.min_residual_m
+            limit = 1.5 * floor
         if best > limit:
             self._bad_updates += 1
         else:

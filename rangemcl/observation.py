@@ -31,8 +31,12 @@ def particle_residual_kernel(
     measured: wp.array[float],
     margin: float,
     cap: float,
+    tau: float,  # a ray agrees when its residual is below tau
+    hist_top: float,  # rendered ranges binned into out_hist's columns over [0, hist_top)
     offset: int,
     out_mean: wp.array[float],
+    out_agree: wp.array[float],
+    out_hist: wp.array2d[float],  # (N, bins); (1, 0) when no histogram is wanted
 ):
     k = wp.tid() + offset
     p = particles[k]
@@ -40,6 +44,8 @@ def particle_residual_kernel(
     s = wp.sin(p[2])
     base = wp.vec3(p[0], p[1], sensor_z[k])
     total = float(0.0)
+    agree = float(0.0)
+    bins = out_hist.shape[1]
     for i in range(directions.shape[0]):
         d = directions[i]
         o = origins[i]
@@ -50,8 +56,14 @@ def particle_residual_kernel(
         r = float(margin)
         if m >= 0:
             r = wp.abs(measured[i] - t)
+            if bins > 0 and t < hist_top:
+                b = wp.min(int(t / hist_top * float(bins)), bins - 1)
+                out_hist[k, b] = out_hist[k, b] + 1.0
+        if r < tau:
+            agree += 1.0
         total += wp.min(r, cap)
     out_mean[k] = total / float(directions.shape[0])
+    out_agree[k] = agree / float(directions.shape[0])
 
 
 class ObservationModel:
@@ -96,6 +108,14 @@ class ObservationModel:
 
     def mean_residuals(self, particles, sensor_z) -> np.ndarray:
         """``d`` of Eq. 5 for each particle: ``particles`` ``(N, 3)`` (x, y, yaw), ``sensor_z`` ``(N,)``."""
+        return self.scores(particles, sensor_z)["mean"]
+
+    def scores(
+        self, particles, sensor_z, *, agree_m: float = 0.3, hist_bins: int = 0, hist_top_m: float = 100.0
+    ):
+        """Per particle, from one pass over its rays: ``mean`` (``d`` of Eq. 5), ``agree`` (the share of
+        rays whose residual is below ``agree_m``) and, with ``hist_bins``, ``hist`` ``(N, bins)``: counts
+        of the rendered ranges (hits only) in equal bins over ``[0, hist_top_m)``."""
         if self._rays is None:
             raise InputError("no scan set: call set_scan first")
         p = np.ascontiguousarray(particles, np.float32)
@@ -103,7 +123,12 @@ class ObservationModel:
         if p.ndim != 2 or p.shape[1] != 3 or not np.isfinite(p).all() or not np.isfinite(z).all():
             raise InputError(f"particles: expected finite (N, 3) x, y, yaw, got shape {p.shape}")
         n = len(p)
-        out = np.empty(n, np.float32)
+        bins = int(hist_bins)
+        out = {
+            "mean": np.empty(n, np.float32),
+            "agree": np.empty(n, np.float32),
+            "hist": np.zeros((n if bins else 1, bins), np.float32),
+        }
         if n == 0:
             return out
         c = self.caster
@@ -119,9 +144,11 @@ class ObservationModel:
             *self._rays,
             self.margin_m,
             self.cap_m,
+            float(agree_m),
+            float(hist_top_m),
         ]
         if cpu:
-            out_wp = wp.array(out, dtype=float, device=dev, copy=False)
+            outs = [wp.array(out[k], dtype=float, device=dev, copy=False) for k in ("mean", "agree", "hist")]
             bounds = np.linspace(0, n, min(n, 4 * c.threads) + 1).astype(int)
 
             def run(k: int) -> None:
@@ -131,7 +158,7 @@ class ObservationModel:
                         particle_residual_kernel,
                         dim=hi - lo,
                         inputs=[*inputs, lo],
-                        outputs=[out_wp],
+                        outputs=outs,
                         device=dev,
                     )
 
@@ -141,9 +168,13 @@ class ObservationModel:
             else:
                 list(c._pool.map(run, range(len(bounds) - 1)))
             return out
-        out_wp = wp.empty(n, dtype=float, device=dev)
-        wp.launch(particle_residual_kernel, dim=n, inputs=[*inputs, 0], outputs=[out_wp], device=dev)
-        return out_wp.numpy()
+        outs = [
+            wp.empty(n, dtype=float, device=dev),
+            wp.empty(n, dtype=float, device=dev),
+            wp.zeros(out["hist"].shape, dtype=float, device=dev),
+        ]
+        wp.launch(particle_residual_kernel, dim=n, inputs=[*inputs, 0], outputs=outs, device=dev)
+        return {"mean": outs[0].numpy(), "agree": outs[1].numpy(), "hist": outs[2].numpy()}
 
     def log_likelihood(self, mean_residuals: np.ndarray) -> np.ndarray:
         """Eq. 5 in log form: ``−½ d² / σ_d²``."""

@@ -1,0 +1,192 @@
+"""Observation models for the Monte Carlo localizer: the paper's range-image model and three baselines.
+Only the observation model changes between them, as in the paper's comparison; each scores all particles
+against one scan's rays and returns log-likelihoods and a *badness* (lower is better: what the recovery
+watches).
+
+* ``range`` (paper Eq. 5): ``d = mean |measured − rendered|`` (capped per ray in the robust variant),
+  ``log p = −½ d² / σ²``; badness ``d`` (m).
+* ``overlap``: an analytic overlap model, no network: the share ``a`` of rays whose rendered range agrees
+  with the measured one within ``overlap_tau_m``; ``log p = −½ ((1 − a) / σ_o)²``; badness ``1 − a``.
+* ``likelihood_field``: the beam-end model (Thrun et al.) on a 10 cm voxel map of the mesh's surface (the
+  mesh sampled densely, one point per occupied voxel): each ray's end point at the particle's pose is
+  scored by its distance ``e`` to the nearest occupied voxel, ``log p = w · mean log(z_hit · exp(−½
+  e²/σ²) + z_rand)``; badness ``mean min(e, 1 m)``. Rays are not cast through the map at all.
+* ``histogram`` (after Röhling et al., IROS 2015): range histograms of the measured rays and of the rays
+  rendered at the particle's pose, compared by the Wasserstein distance of their normalised histograms
+  (as a share of the histogram range); ``log p = −½ (W / σ_h)²``; badness ``W``. Histograms do not see
+  yaw, so this model cannot tell headings apart on its own.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rangemcl.errors import InputError
+from rangemcl.observation import ObservationModel
+
+MODEL_NAMES = ("range", "overlap", "likelihood_field", "histogram")
+
+
+class ScoringModel:
+    """Base: ``score(rays, particles, sensor_z) -> (log-likelihood (N,), badness (N,))``."""
+
+    name = ""
+    lost_floor = 0.3  # the recovery's floor on the best badness, in the model's units
+
+    def score(self, rays, particles: np.ndarray, sensor_z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+
+class RangeModel(ScoringModel):
+    name = "range"
+    lost_floor = 0.3
+
+    def __init__(self, kernel: ObservationModel, sigma_m: float):
+        self.kernel = kernel
+        self.sigma = float(sigma_m)
+
+    def score(self, rays, particles, sensor_z):
+        self.kernel.set_scan(rays.directions, rays.ranges)
+        d = self.kernel.mean_residuals(particles, sensor_z).astype(np.float64)
+        return -0.5 * d * d / self.sigma**2, d
+
+
+class OverlapModel(ScoringModel):
+    name = "overlap"
+    lost_floor = 0.5
+
+    def __init__(self, kernel: ObservationModel, tau_m: float, sigma: float):
+        self.kernel = kernel
+        self.tau = float(tau_m)
+        self.sigma = float(sigma)
+
+    def score(self, rays, particles, sensor_z):
+        self.kernel.set_scan(rays.directions, rays.ranges)
+        a = self.kernel.scores(particles, sensor_z, agree_m=self.tau)["agree"].astype(np.float64)
+        bad = 1.0 - a
+        return -0.5 * (bad / self.sigma) ** 2, bad
+
+
+class HistogramModel(ScoringModel):
+    name = "histogram"
+    lost_floor = 0.05
+
+    def __init__(self, kernel: ObservationModel, bins: int, top_m: float, sigma: float):
+        self.kernel = kernel  # cast to the full range: histograms need the rendered ranges themselves
+        self.bins = int(bins)
+        self.top = float(top_m)
+        self.sigma = float(sigma)
+
+    def score(self, rays, particles, sensor_z):
+        self.kernel.set_scan(rays.directions, rays.ranges)
+        rendered = self.kernel.scores(particles, sensor_z, hist_bins=self.bins, hist_top_m=self.top)["hist"]
+        measured, _ = np.histogram(rays.ranges, bins=self.bins, range=(0.0, self.top))
+        w = wasserstein_1d(rendered.astype(np.float64), measured.astype(np.float64)[None, :])
+        return -0.5 * (w / self.sigma) ** 2, w
+
+
+def wasserstein_1d(h1: np.ndarray, h2: np.ndarray) -> np.ndarray:
+    """Earth mover's distance between normalised histograms on the same equal bins, as a share of their
+    span (0 … 1); an empty histogram is at distance 1 from anything."""
+    h1 = np.atleast_2d(np.asarray(h1, np.float64))
+    h2 = np.atleast_2d(np.asarray(h2, np.float64))
+    s1, s2 = h1.sum(axis=1, keepdims=True), h2.sum(axis=1, keepdims=True)
+    c1 = np.cumsum(h1 / np.where(s1 > 0, s1, 1.0), axis=1)
+    c2 = np.cumsum(h2 / np.where(s2 > 0, s2, 1.0), axis=1)
+    w = np.abs(c1 - c2).sum(axis=1) / h1.shape[1]
+    return np.where((s1[:, 0] > 0) & (s2[:, 0] > 0), w, 1.0)
+
+
+class LikelihoodFieldModel(ScoringModel):
+    name = "likelihood_field"
+    lost_floor = 0.3
+
+    def __init__(
+        self,
+        vertices: np.ndarray,
+        faces: np.ndarray,
+        *,
+        voxel_m: float = 0.1,
+        sigma_m: float = 0.2,
+        weight: float = 20.0,
+        z_hit: float = 0.9,
+        max_points: int = 30_000_000,
+        seed: int = 0,
+    ):
+        from scipy.spatial import cKDTree
+
+        self.voxel = float(voxel_m)
+        self.sigma = float(sigma_m)
+        self.weight = float(weight)
+        self.z_hit, self.z_rand = float(z_hit), 1.0 - float(z_hit)
+        centres = surface_voxels(vertices, faces, self.voxel, max_points=max_points, seed=seed)
+        self.voxels = len(centres)
+        self.tree = cKDTree(centres)
+
+    def score(self, rays, particles, sensor_z, chunk: int = 1000):
+        ends_local = rays.directions * rays.ranges[:, None]  # (R, 3) levelled sensor frame
+        n = len(particles)
+        loglik = np.empty(n)
+        bad = np.empty(n)
+        for lo in range(0, n, chunk):
+            p = particles[lo : lo + chunk]
+            c, s = np.cos(p[:, 2])[:, None], np.sin(p[:, 2])[:, None]
+            x = p[:, 0:1] + c * ends_local[None, :, 0] - s * ends_local[None, :, 1]
+            y = p[:, 1:2] + s * ends_local[None, :, 0] + c * ends_local[None, :, 1]
+            z = np.asarray(sensor_z)[lo : lo + chunk, None] + ends_local[None, :, 2]
+            pts = np.stack([x, y, z], axis=-1).reshape(-1, 3)
+            e, _ = self.tree.query(pts, distance_upper_bound=1.0, workers=-1)
+            e = np.minimum(e, 1.0).reshape(len(p), -1)  # beyond 1 m (inf from the query): 1 m
+            like = self.z_hit * np.exp(-0.5 * (e / self.sigma) ** 2) + self.z_rand
+            loglik[lo : lo + chunk] = self.weight * np.log(like).mean(axis=1)
+            bad[lo : lo + chunk] = e.mean(axis=1)
+        return loglik, bad
+
+
+def surface_voxels(
+    vertices, faces, voxel_m: float, *, max_points: int = 30_000_000, seed: int = 0
+) -> np.ndarray:
+    """Centres of the ``voxel_m`` voxels a triangle mesh's surface passes through (the surface sampled at
+    about three points per voxel face, then one point per occupied voxel)."""
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    if len(f) == 0:
+        raise InputError("likelihood field: the map has no triangles")
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    count = int(min(max_points, max(len(f), 3.0 * area.sum() / voxel_m**2)))
+    rng = np.random.default_rng(seed)
+    tri = rng.choice(len(f), count, p=area / area.sum())
+    r1, r2 = np.sqrt(rng.uniform(size=count)), rng.uniform(size=count)
+    pts = (1 - r1)[:, None] * a[tri] + (r1 * (1 - r2))[:, None] * b[tri] + (r1 * r2)[:, None] * c[tri]
+    ijk = np.floor(pts / voxel_m).astype(np.int64)
+    lo = ijk.min(axis=0)
+    ijk -= lo
+    span = ijk.max(axis=0) + 1
+    keys = np.unique((ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2])  # one int per voxel: fast
+    ijk = np.column_stack([keys // (span[1] * span[2]), (keys // span[2]) % span[1], keys % span[2]])
+    return (ijk + lo + 0.5) * voxel_m
+
+
+def make_model(name: str, caster, settings, mesh_map) -> ScoringModel:
+    """The observation model ``name`` (one of :data:`MODEL_NAMES`) with the given ObservationSettings."""
+    o = settings
+    cap = np.inf if o.cap_m is None else o.cap_m
+    if name == "range":
+        return RangeModel(
+            ObservationModel(caster, sigma_m=o.sigma_m, margin_m=o.margin_m, cap_m=cap), o.sigma_m
+        )
+    if name == "overlap":
+        return OverlapModel(ObservationModel(caster, margin_m=o.margin_m), o.overlap_tau_m, o.overlap_sigma)
+    if name == "histogram":
+        kernel = ObservationModel(caster, margin_m=max(o.max_range_m, 1.0))
+        return HistogramModel(kernel, o.histogram_bins, o.max_range_m, o.histogram_sigma)
+    if name == "likelihood_field":
+        return LikelihoodFieldModel(
+            mesh_map.vertices,
+            mesh_map.faces,
+            voxel_m=o.field_voxel_m,
+            sigma_m=o.field_sigma_m,
+            weight=o.field_weight,
+        )
+    raise InputError(f"observation model {name!r}: expected one of {', '.join(MODEL_NAMES)}")
