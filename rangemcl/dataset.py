@@ -663,3 +663,40 @@ class SequenceWriter:
     def __exit__(self, exc_type, exc, tb) -> bool:
         self.close(complete=exc_type is None)
         return False
+
+
+def splice_kidnapped(seq_dir, out, a: int, b: int, half: int) -> Path:
+    """A kidnapped-car sequence: frames ``a .. a+half-1`` of ``seq_dir``, then frames ``b .. b+half-1``,
+    whose odometry carries on smoothly across the jump (the car is teleported; its odometry does not see
+    it). Times are re-stamped at the sequence's median frame period. ``meta.yaml`` records the splice."""
+    seq = load_sequence(seq_dir, require_poses=True)
+    n = len(seq)
+    if half < 1 or min(a, b) < 0 or max(a, b) + half > n:
+        raise InputError(f"{seq.root}: cannot splice frames {a}+{half} and {b}+{half} from {n} frames")
+    if seq.odometry is None:
+        raise InputError(f"{seq.root}: a kidnapped-car sequence needs odometry.txt")
+    frames = list(range(a, a + half)) + list(range(b, b + half))
+    period = float(np.median(np.diff(seq.times))) if seq.times is not None and n > 1 else 0.1
+    out = Path(out)
+    if out.exists():
+        shutil.rmtree(out)
+    meta = dict(seq.meta)
+    meta.pop("complete", None)
+    meta["spliced_from"] = {"sequence": str(seq.root), "frames": [a, a + half, b, b + half], "jump_at": half}
+    odo = seq.odometry[a].copy()
+    with SequenceWriter(out, meta=meta, calib_Tr=seq.calib_Tr) as w:
+        for k, i in enumerate(frames):
+            if k:
+                # the odometry's own step into frame i (at the jump: frame b's ordinary step)
+                odo = odo @ (np.linalg.inv(seq.odometry[i - 1]) @ seq.odometry[i] if i > 0 else np.eye(4))
+            pts, intensity = seq.scan_with_intensity(i)
+            w.add_frame(
+                pts,
+                intensity=intensity,
+                pose=seq.poses[i],
+                time_s=k * period,
+                odometry=odo,
+                imu_roll_pitch=seq.imu_roll_pitch[i] if seq.imu_roll_pitch is not None else None,
+                point_meta=seq.point_meta(i) or None,
+            )
+    return out

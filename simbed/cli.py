@@ -130,6 +130,56 @@ def demo(
 
 
 @app.command()
+def trials(
+    suite: str = typer.Argument(..., help="particles, sensors, models, kidnap or runtime."),
+    out: Path = typer.Option(..., help="Suite folder (drives, trials, results.csv, SUITE.md, SUITE.png)."),
+    map_dir: Path = typer.Option(..., "--map", help="The scene's map folder (rangemcl build-map)."),
+    quick: bool = typer.Option(False, help="A handful of trials (CI size)."),
+    scene: str = typer.Option("town_small", help="Scene of the test drives."),
+    route: str = typer.Option("test", help="Route of the test drives."),
+    sensor: str = typer.Option("os1-64", help="Sensor (all suites but 'sensors')."),
+    actors: int = typer.Option(10, help="Moving actors in the test drives."),
+    variant: int = typer.Option(1, help="Parked-car variant of the test drives."),
+    drive_frames: int = typer.Option(1000, help="Frames of each test drive."),
+    frames: int = typer.Option(250, help="Frames of each trial."),
+    starts: int = typer.Option(10, help="Start points per setting."),
+    workers: int = typer.Option(None, help="Trials in parallel (default: all cores)."),
+    backend: str = typer.Option("process", help="process (local pool) or ray."),
+    address: str = typer.Option(None, help="Ray cluster address (backend ray; default: a local instance)."),
+    device: str = typer.Option("cpu", help="Warp device: cpu or cuda."),
+) -> None:
+    """Run (or continue) one of the paper's experiments as a suite of localization trials."""
+    from simbed.trials import SuiteConfig, run_suite
+
+    config = SuiteConfig(
+        scene=scene,
+        route=route,
+        variant=variant,
+        actors=actors,
+        drive_frames=drive_frames,
+        frames=frames,
+        starts=starts,
+        sensor=sensor,
+    )
+    rows = run_suite(
+        suite,
+        out,
+        map_dir,
+        quick=quick,
+        config=config,
+        workers=workers,
+        backend=backend,
+        address=address,
+        device=device,
+        say=typer.echo,
+    )
+    ok = sum(str(r["success"]).lower() == "true" for r in rows)
+    typer.echo(
+        f"{suite}: {ok}/{len(rows)} trials successful; table {out}/{suite}.md, figure {out}/{suite}.png"
+    )
+
+
+@app.command()
 def render(
     out: Path = typer.Option(..., help="PNG file to write."),
     scene: str = typer.Option("town_small", help="Scene name in scenes/ or an MJCF file."),

@@ -28,39 +28,6 @@ from pathlib import Path
 import numpy as np
 
 
-def splice(seq_dir: Path, out: Path, a: int, b: int, half: int) -> int:
-    """A sequence of frames ``a .. a+half-1`` then ``b .. b+half-1`` of ``seq_dir`` whose odometry carries
-    on smoothly across the jump (the car is teleported, its odometry does not see it). Returns the frame
-    of the jump."""
-    from rangemcl.dataset import SequenceWriter, load_sequence
-    from rangemcl.transforms import invert_rigid
-
-    seq = load_sequence(seq_dir)
-    frames = list(range(a, a + half)) + list(range(b, b + half))
-    period = float(np.median(np.diff(seq.times)))
-    if out.exists():
-        shutil.rmtree(out)
-    meta = dict(seq.meta)
-    meta.pop("complete", None)
-    meta["spliced_from"] = {"sequence": str(seq_dir), "frames": [a, a + half, b, b + half], "jump_at": half}
-    odo = seq.odometry[a].copy()
-    with SequenceWriter(out, meta=meta, calib_Tr=seq.calib_Tr) as w:
-        for k, i in enumerate(frames):
-            if k:
-                odo = odo @ (invert_rigid(seq.odometry[i - 1]) @ seq.odometry[i])
-            pts, intensity = seq.scan_with_intensity(i)
-            w.add_frame(
-                pts,
-                intensity=intensity,
-                pose=seq.poses[i],
-                time_s=k * period,
-                odometry=odo,
-                imu_roll_pitch=seq.imu_roll_pitch[i] if seq.imu_roll_pitch is not None else None,
-                point_meta=seq.point_meta(i) or None,
-            )
-    return half
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seq", required=True)
@@ -76,7 +43,7 @@ def main() -> None:
     args = ap.parse_args()
 
     from rangemcl.config import load_config
-    from rangemcl.dataset import load_sequence
+    from rangemcl.dataset import load_sequence, splice_kidnapped
     from rangemcl.localize import RunOptions, localize_sequence
     from rangemcl.mcl import LocalizerSettings
 
@@ -97,7 +64,7 @@ def main() -> None:
             )
             if not (run_dir / "summary.json").is_file():
                 seq_k = out / f"kidnap_seq_{k:02d}"
-                splice(Path(args.seq), seq_k, a, b, args.half)
+                splice_kidnapped(args.seq, seq_k, a, b, args.half)
                 localize_sequence(seq_k, args.map, run_dir, settings, opts)
                 shutil.rmtree(seq_k)
             start = {"frames": [a, b], "jump_at": args.half}

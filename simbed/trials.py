@@ -1,0 +1,517 @@
+"""The paper's experiments as reproducible suites of localization trials (``simbed trials SUITE``).
+
+A **trial** is one localization run: a recorded test drive (scene, sensor, route, parked-car variant,
+moving actors, seed), a start frame on it, a particle count, an observation model and a seed; global
+localization, or a kidnapped car (tracking, then teleported halfway). Suites:
+
+* ``particles``: success rate against the particle count, per observation model (the paper's Fig. 6);
+* ``sensors``: location and yaw RMSE for the 8- to 128-beam presets with one parameter set (Table III);
+* ``models``: location and yaw error per observation model on two test drives (Table II);
+* ``kidnap``: relocalization rate and time after a teleport;
+* ``runtime``: frame rates before and after convergence.
+
+``quick`` sizes run in CI time; the full sizes are for a long run or a GPU. Drives are recorded once into
+``OUT/drives`` and shared by the trials; every trial writes its ``rangemcl localize`` folder under
+``OUT/trials`` and, when done, one row of ``OUT/results.csv``: a crashed or interrupted suite continues
+where it stopped (finished trials are skipped). Trials run in parallel on all cores (a process pool), or
+on a Ray cluster (``backend="ray"``). Each suite writes ``OUT/SUITE.md`` (a markdown table) and
+``OUT/SUITE.png``.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import numpy as np
+
+from rangemcl.errors import InputError
+
+SUITES = ("particles", "sensors", "models", "kidnap", "runtime")
+PAPER_SENSORS = {  # the paper's Carla figures (location RMSE m, yaw RMSE deg), ../shared/SENSORS.md
+    "mq-8": (0.48, 3.87),
+    "vlp-16": (0.43, 3.87),
+    "hdl-32e": (0.42, 3.40),
+    "hdl-64e": (0.36, 3.46),
+    "os1-128": (0.33, 3.31),
+}
+
+
+@dataclass(frozen=True)
+class Trial:
+    suite: str
+    scene: str
+    sensor: str
+    route: str
+    variant: int
+    actors: int
+    drive_seed: int
+    drive_frames: int
+    start_frame: int
+    frames: int
+    particles: int
+    model: str
+    seed: int
+    kidnap: bool = False
+
+    @property
+    def key(self) -> str:
+        return (
+            f"{self.suite}-{self.drive_key}-s{self.start_frame}-f{self.frames}-p{self.particles}-{self.model}"
+            f"-r{self.seed}{'-kidnap' if self.kidnap else ''}"
+        )
+
+    @property
+    def drive_key(self) -> str:
+        return (
+            f"{self.scene}-{self.sensor}-{self.route}-v{self.variant}-a{self.actors}-d{self.drive_seed}"
+            f"-n{self.drive_frames}"
+        )
+
+
+@dataclass
+class SuiteConfig:
+    scene: str = "town_small"
+    route: str = "test"
+    variant: int = 1
+    actors: int = 10
+    drive_frames: int = 1000
+    frames: int = 250  # per trial (kidnap: half before and half after the jump)
+    starts: int = 10
+    sensor: str = "os1-64"
+    particles: int = 10000  # global localization (suite 'particles' varies it); quick suites use 2,000
+
+
+def suite_trials(suite: str, quick: bool = False, config: SuiteConfig | None = None) -> list[Trial]:
+    """The trials of a suite (``quick``: a handful that run in CI time)."""
+    c = config or SuiteConfig()
+    if suite not in SUITES:
+        raise InputError(f"suite {suite!r}: expected one of {', '.join(SUITES)}")
+    starts = 2 if quick else c.starts
+    default_particles = min(c.particles, 2000) if quick else c.particles
+
+    def trials(
+        sensor=c.sensor,
+        route=c.route,
+        particles=default_particles,
+        model="range",
+        n=starts,
+        kidnap=False,
+        seed0=0,
+    ):
+        span = max(0, c.drive_frames - c.frames)
+        out = []
+        for k in range(n):
+            start = int(round(k * span / max(1, n - 1))) if n > 1 else 0
+            out.append(
+                Trial(
+                    suite,
+                    c.scene,
+                    sensor,
+                    route,
+                    c.variant,
+                    c.actors,
+                    7,
+                    c.drive_frames,
+                    start,
+                    c.frames,
+                    particles,
+                    model,
+                    seed0 + k,
+                    kidnap,
+                )
+            )
+        return out
+
+    if suite == "particles":
+        counts = [300, 1000] if quick else [1000, 5000, 10000, 50000, 100000]
+        models = ["range", "overlap"] if quick else ["range", "overlap", "likelihood_field", "histogram"]
+        return [t for m in models for p in counts for t in trials(particles=p, model=m)]
+    if suite == "sensors":
+        sensors = ["vlp-16", "os1-64"] if quick else ["mq-8", "vlp-16", "hdl-32e", "hdl-64e", "os1-128"]
+        return [t for s in sensors for t in trials(sensor=s, n=1 if quick else starts)]
+    if suite == "models":
+        models = ["range", "overlap", "likelihood_field", "histogram"]
+        routes = [c.route] if quick else ["test-1", "test-2"]
+        n = 1 if quick else max(1, starts // 2)
+        return [t for m in models for r in routes for t in trials(route=r, model=m, n=n)]
+    if suite == "kidnap":
+        return trials(kidnap=True, n=2 if quick else starts)
+    return trials(n=1 if quick else 3)  # runtime
+
+
+# ---------------------------------------------------------------------------------------------- running
+
+
+def ensure_drive(trial: Trial, drives_dir: Path, device: str = "cpu") -> Path:
+    """The trial's test drive, recorded once (a complete recording is reused)."""
+    from rangemcl.dataset import load_sequence
+    from simbed.record import record
+
+    path = drives_dir / trial.drive_key
+    try:
+        if load_sequence(path).meta.get("complete"):
+            return path
+    except InputError:
+        pass
+    record(
+        trial.scene,
+        trial.route,
+        trial.sensor,
+        path,
+        frames=trial.drive_frames,
+        actors=trial.actors,
+        variant=trial.variant,
+        seed=trial.drive_seed,
+        device=device,
+        overwrite=True,
+        progress=False,
+    )
+    return path
+
+
+def run_trial(
+    trial: Trial, drive: Path, map_dir: Path, trials_dir: Path, threads: int = 1, device: str = "cpu"
+) -> dict:
+    """Localize one trial; its results row (the trial's fields plus metrics and timings)."""
+    from rangemcl.dataset import load_sequence, splice_kidnapped
+    from rangemcl.localize import RunOptions, localize_sequence
+    from rangemcl.mcl import LocalizerSettings
+
+    out = trials_dir / trial.key
+    settings = LocalizerSettings()
+    settings.observation.model = trial.model
+    settings.particles.global_count = trial.particles
+    n = len(load_sequence(drive))
+    t0 = time.perf_counter()
+    if trial.kidnap:
+        half = max(1, trial.frames // 2)
+        a = min(trial.start_frame, max(0, n - half))
+        b = (a + n // 2) % max(1, n - half)
+        seq = trials_dir / f"{trial.key}-seq"
+        splice_kidnapped(drive, seq, a, b, half)
+        try:
+            s = localize_sequence(
+                seq,
+                map_dir,
+                out,
+                settings,
+                RunOptions(mode="tracking", seed=trial.seed, threads=threads, device=device, plots=False),
+            )
+        finally:
+            import shutil
+
+            shutil.rmtree(seq, ignore_errors=True)
+    else:
+        first = min(trial.start_frame, max(0, n - 1))
+        s = localize_sequence(
+            drive,
+            map_dir,
+            out,
+            settings,
+            RunOptions(
+                mode="global",
+                seed=trial.seed,
+                threads=threads,
+                device=device,
+                first_frame=first,
+                frames=trial.frames,
+                plots=False,
+            ),
+        )
+    m = json.loads((out / "metrics.json").read_text())
+    success = bool(m["success"]) and (not trial.kidnap or s["recoveries"] >= 1)
+    conv = s["converged_frame"]
+    row = {
+        **asdict(trial),
+        "key": trial.key,
+        "success": success,
+        "frames_to_converge": None if conv is None else conv - s["first_frame"],
+        "recoveries": s["recoveries"],
+        "relocalized_after_frames": (conv - s["first_frame"] - trial.frames // 2)
+        if trial.kidnap and conv is not None and s["recoveries"]
+        else None,
+        "location_rmse_m": m.get("location_rmse_m"),
+        "yaw_rmse_deg": m.get("yaw_rmse_deg"),
+        "location_median_m": m.get("location_median_m"),
+        "frames_after_convergence": None if conv is None else m["frames"] - (conv - s["first_frame"]),
+        "seconds_per_frame_before": s["seconds_per_frame_before_convergence_median"],
+        "hz_after": s["hz_after_convergence"],
+        "seconds": time.perf_counter() - t0,
+    }
+    return row
+
+
+def _trial_job(args) -> dict:
+    trial, drive, map_dir, trials_dir, threads, device = args
+    return run_trial(trial, drive, map_dir, trials_dir, threads, device)
+
+
+ROW_FIELDS = [f.name for f in fields(Trial)] + [
+    "key",
+    "success",
+    "frames_to_converge",
+    "recoveries",
+    "relocalized_after_frames",
+    "location_rmse_m",
+    "yaw_rmse_deg",
+    "location_median_m",
+    "frames_after_convergence",
+    "seconds_per_frame_before",
+    "hz_after",
+    "seconds",
+]
+
+
+def read_results(path: Path) -> list[dict]:
+    if not path.is_file():
+        return []
+    with path.open() as fh:
+        return list(csv.DictReader(fh))
+
+
+def run_suite(
+    suite: str,
+    out_dir,
+    map_dir,
+    *,
+    quick: bool = False,
+    config: SuiteConfig | None = None,
+    workers: int | None = None,
+    backend: str = "process",
+    address: str | None = None,
+    device: str = "cpu",
+    say=print,
+) -> list[dict]:
+    """Run (or continue) a suite; write results.csv, SUITE.md and SUITE.png; return the suite's rows."""
+    from rangemcl.mapping.meshmap import MeshMap
+
+    out = Path(out_dir)
+    (out / "drives").mkdir(parents=True, exist_ok=True)
+    (out / "trials").mkdir(parents=True, exist_ok=True)
+    MeshMap.load(map_dir)  # a clear error now rather than in every worker
+    trials = suite_trials(suite, quick, config)
+    results_path = out / "results.csv"
+    done = {r["key"] for r in read_results(results_path)}
+    todo = [t for t in trials if t.key not in done]
+    say(f"suite {suite}: {len(trials)} trials, {len(trials) - len(todo)} already done")
+    drives = {}
+    for t in todo:
+        if t.drive_key not in drives:
+            say(f"  drive {t.drive_key}")
+            drives[t.drive_key] = ensure_drive(t, out / "drives", device)
+    workers = workers or os.cpu_count() or 1
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    jobs = [(t, drives[t.drive_key], Path(map_dir), out / "trials", threads, device) for t in todo]
+    new_file = not results_path.is_file()
+    with results_path.open("a", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=ROW_FIELDS)
+        if new_file:
+            writer.writeheader()
+            fh.flush()
+        for row in _execute(jobs, workers, backend, address):
+            writer.writerow({k: row.get(k) for k in ROW_FIELDS})
+            fh.flush()
+            os.fsync(fh.fileno())
+            verdict = "success" if row["success"] else "failure"
+            say(f"  {row['key']}: {verdict}, RMSE {_fmt(row['location_rmse_m'])} m")
+    keys = {t.key for t in trials}
+    rows = [r for r in read_results(results_path) if r["key"] in keys]
+    write_report(suite, rows, out)
+    return rows
+
+
+def _execute(jobs, workers: int, backend: str, address: str | None):
+    """Results of the jobs as they finish, from a process pool or a Ray cluster."""
+    if not jobs:
+        return
+    if backend == "ray":
+        try:
+            import ray
+        except ImportError:
+            raise InputError("backend 'ray' needs Ray: pip install 'simbed-rangemcl[ray]'") from None
+        started = not ray.is_initialized()
+        if started:
+            ray.init(
+                address=address,
+                include_dashboard=False,
+                log_to_driver=False,
+                num_cpus=None if address else workers,
+            )
+        try:
+            remote = ray.remote(num_cpus=1)(_trial_job)
+            pending = [remote.remote(j) for j in jobs]
+            while pending:
+                ready, pending = ray.wait(pending, num_returns=1)
+                yield ray.get(ready[0])
+        finally:
+            if started:
+                ray.shutdown()
+        return
+    if backend != "process":
+        raise InputError(f"backend {backend!r}: expected 'process' or 'ray'")
+    if workers <= 1 or len(jobs) == 1:
+        for j in jobs:
+            yield _trial_job(j)
+        return
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    with ProcessPoolExecutor(workers) as pool:
+        futures = [pool.submit(_trial_job, j) for j in jobs]
+        for f in as_completed(futures):
+            yield f.result()
+
+
+# ---------------------------------------------------------------------------------------------- reports
+
+
+def _num(x) -> float:
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return float("nan")
+    return v
+
+
+def _truthy(x) -> bool:
+    return str(x).lower() in ("true", "1")
+
+
+def aggregate(rows: list[dict], by: list[str]) -> list[dict]:
+    """Per group: trials, successes, RMSE over the successful trials' frames after convergence, medians."""
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        groups.setdefault(tuple(r[k] for k in by), []).append(r)
+    out = []
+    for key, rs in sorted(
+        groups.items(), key=lambda kv: [(_num(v) if _num(v) == _num(v) else v) for v in kv[0]]
+    ):
+        good = [r for r in rs if _truthy(r["success"])]
+        w = np.array([_num(r["frames_after_convergence"]) for r in good])
+        loc = np.array([_num(r["location_rmse_m"]) for r in good])
+        yaw = np.array([_num(r["yaw_rmse_deg"]) for r in good])
+        conv = [_num(r["frames_to_converge"]) for r in rs if r["frames_to_converge"] not in ("", None)]
+        hz = [_num(r["hz_after"]) for r in rs if r["hz_after"] not in ("", None)]
+        before = [
+            _num(r["seconds_per_frame_before"]) for r in rs if r["seconds_per_frame_before"] not in ("", None)
+        ]
+        reloc = [
+            _num(r["relocalized_after_frames"])
+            for r in rs
+            if r.get("relocalized_after_frames") not in ("", None)
+        ]
+        out.append(
+            {
+                **dict(zip(by, key, strict=True)),
+                "trials": len(rs),
+                "successes": len(good),
+                "location_rmse_m": float(np.sqrt(np.sum(w * loc**2) / w.sum()))
+                if len(good) and w.sum() > 0
+                else None,
+                "yaw_rmse_deg": float(np.sqrt(np.sum(w * yaw**2) / w.sum()))
+                if len(good) and w.sum() > 0
+                else None,
+                "location_rmse_mean_m": float(np.mean(loc)) if len(good) else None,
+                "location_rmse_std_m": float(np.std(loc)) if len(good) else None,
+                "yaw_rmse_mean_deg": float(np.mean(yaw)) if len(good) else None,
+                "yaw_rmse_std_deg": float(np.std(yaw)) if len(good) else None,
+                "frames_to_converge_median": float(np.median(conv)) if conv else None,
+                "hz_after_median": float(np.median(hz)) if hz else None,
+                "seconds_before_median": float(np.median(before)) if before else None,
+                "relocalized_after_frames_median": float(np.median(reloc)) if reloc else None,
+            }
+        )
+    return out
+
+
+def _fmt(x, digits=3) -> str:
+    return (
+        "–"
+        if x is None or (isinstance(x, float) and x != x)
+        else (f"{x:.{digits}f}" if isinstance(x, float) else str(x))
+    )
+
+
+def write_report(suite: str, rows: list[dict], out: Path) -> tuple[Path, Path]:
+    """``OUT/SUITE.md`` and ``OUT/SUITE.png`` from the suite's rows."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    by = {
+        "particles": ["model", "particles"],
+        "sensors": ["sensor"],
+        "models": ["model", "route"],
+        "kidnap": ["model"],
+        "runtime": ["particles"],
+    }[suite]
+    agg = aggregate(rows, by)
+    lines = [
+        f"# simbed trials: {suite}",
+        "",
+        f"{len(rows)} trials; RMSE over the frames after convergence of "
+        "the successful trials; success = location error < 5 m at every 100th frame after convergence.",
+        "",
+    ]
+    cols = [*by, "trials", "successes", "location_rmse_m", "yaw_rmse_deg", "frames_to_converge_median"]
+    if suite == "models":
+        cols += ["location_rmse_mean_m", "location_rmse_std_m", "yaw_rmse_mean_deg", "yaw_rmse_std_deg"]
+    if suite == "sensors":
+        cols += ["paper_location_rmse_m", "paper_yaw_rmse_deg"]
+        for a in agg:
+            a["paper_location_rmse_m"], a["paper_yaw_rmse_deg"] = PAPER_SENSORS.get(a["sensor"], (None, None))
+    if suite == "kidnap":
+        cols += ["relocalized_after_frames_median"]
+    if suite == "runtime":
+        cols += ["seconds_before_median", "hz_after_median"]
+    lines.append("| " + " | ".join(cols) + " |")
+    lines.append("|" + "---|" * len(cols))
+    for a in agg:
+        lines.append("| " + " | ".join(_fmt(a.get(c)) for c in cols) + " |")
+    md = out / f"{suite}.md"
+    md.write_text("\n".join(lines) + "\n")
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    if suite == "particles":
+        for model in sorted({a["model"] for a in agg}):
+            pts = [
+                (int(_num(a["particles"])), a["successes"] / a["trials"]) for a in agg if a["model"] == model
+            ]
+            pts.sort()
+            ax.plot([p for p, _ in pts], [s for _, s in pts], "o-", label=model)
+        ax.set_xscale("log")
+        ax.set_xlabel("particles")
+        ax.set_ylabel("success rate")
+        ax.set_ylim(-0.05, 1.05)
+        ax.legend()
+    else:
+        labels = [" / ".join(str(a[k]) for k in by) for a in agg]
+        x = np.arange(len(agg))
+        if suite == "runtime":
+            vals = [a["hz_after_median"] or 0 for a in agg]
+            ax.bar(x, vals)
+            ax.set_ylabel("Hz after convergence (median)")
+        elif suite == "kidnap":
+            ax.bar(x, [a["successes"] / a["trials"] for a in agg])
+            ax.set_ylabel("relocalization rate")
+        else:
+            ours = [a["location_rmse_m"] or np.nan for a in agg]
+            ax.bar(x - 0.2, ours, 0.4, label="ours")
+            if suite == "sensors":
+                ax.bar(
+                    x + 0.2, [a["paper_location_rmse_m"] or np.nan for a in agg], 0.4, label="paper (Carla)"
+                )
+                ax.legend()
+            ax.set_ylabel("location RMSE (m)")
+        ax.set_xticks(x, labels, rotation=20, ha="right")
+    ax.set_title(f"simbed trials {suite}")
+    fig.tight_layout()
+    png = out / f"{suite}.png"
+    fig.savefig(png, dpi=120)
+    plt.close(fig)
+    return md, png

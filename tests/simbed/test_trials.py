@@ -1,0 +1,122 @@
+"""Suites of localization trials: a quick suite on a tiny map produces its results, table and figure, is
+resumable, and runs on a local Ray instance; trial lists by their definitions."""
+
+from __future__ import annotations
+
+import csv
+
+import pytest
+
+from rangemcl.errors import InputError
+from rangemcl.mapping.pipeline import MapSettings, build_map
+from simbed.record import record
+from simbed.trials import SUITES, SuiteConfig, aggregate, run_suite, suite_trials
+
+CONFIG = SuiteConfig(route="mapping", drive_frames=50, frames=30, actors=2, starts=2)
+
+
+@pytest.fixture(scope="module")
+def tiny_map(tmp_path_factory):
+    root = tmp_path_factory.mktemp("trials")
+    record("town_small", "mapping", "os1-64", root / "map_run", frames=50, seed=3, progress=False)
+    s = MapSettings()
+    s.poisson.depth = 8
+    s.workers = 2
+    s.scans.every_nth = 2
+    build_map(root / "map_run", root / "map", s)
+    return root / "map"
+
+
+def test_suite_definitions():
+    for suite in SUITES:
+        quick, full = suite_trials(suite, True), suite_trials(suite, False)
+        assert 0 < len(quick) < len(full)
+        assert len({t.key for t in full}) == len(full)  # every trial has its own results folder
+    sizes = sorted({t.particles for t in suite_trials("particles")})
+    assert sizes == [1000, 5000, 10000, 50000, 100000]
+    assert {t.model for t in suite_trials("particles")} == {
+        "range",
+        "overlap",
+        "likelihood_field",
+        "histogram",
+    }
+    assert {t.sensor for t in suite_trials("sensors")} == {"mq-8", "vlp-16", "hdl-32e", "hdl-64e", "os1-128"}
+    assert all(t.kidnap for t in suite_trials("kidnap"))
+    starts = [
+        t.start_frame for t in suite_trials("kidnap", config=SuiteConfig(drive_frames=1000, frames=250))
+    ]
+    assert starts[0] == 0 and starts[-1] == 750 and starts == sorted(starts)
+    with pytest.raises(InputError, match="suite 'nope'"):
+        suite_trials("nope")
+
+
+def test_quick_suite_writes_results_table_and_figure_and_resumes(tiny_map, tmp_path):
+    out = tmp_path / "sensors"
+    lines: list[str] = []
+    rows = run_suite("sensors", out, tiny_map, quick=True, config=CONFIG, workers=2, say=lines.append)
+    assert len(rows) == 2 and {r["sensor"] for r in rows} == {"vlp-16", "os1-64"}
+    assert all(r["success"] == "True" for r in rows), rows  # the drive runs where the map was built
+    assert all(float(r["location_rmse_m"]) < 0.5 for r in rows)
+    table = (out / "sensors.md").read_text()
+    assert "| sensor |" in table and "vlp-16" in table and "paper_location_rmse_m" in table
+    assert (out / "sensors.png").stat().st_size > 1000
+    again: list[str] = []
+    rows2 = run_suite("sensors", out, tiny_map, quick=True, config=CONFIG, workers=2, say=again.append)
+    assert "2 already done" in again[0] and len(rows2) == 2
+    with (out / "results.csv").open() as fh:
+        assert len(list(csv.DictReader(fh))) == 2  # nothing ran twice
+
+
+def test_suite_on_a_local_ray_instance(tiny_map, tmp_path):
+    pytest.importorskip("ray")
+    rows = run_suite(
+        "runtime",
+        tmp_path / "rt",
+        tiny_map,
+        quick=True,
+        config=CONFIG,
+        workers=1,
+        backend="ray",
+        say=lambda _: None,
+    )
+    assert len(rows) == 1 and float(rows[0]["hz_after"]) > 0
+    assert (tmp_path / "rt" / "runtime.md").is_file()
+
+
+def test_aggregate_weights_rmse_by_frames():
+    rows = [
+        {
+            "model": "range",
+            "success": "True",
+            "frames_after_convergence": "100",
+            "location_rmse_m": "0.1",
+            "yaw_rmse_deg": "1.0",
+            "frames_to_converge": "10",
+            "hz_after": "30",
+            "seconds_per_frame_before": "2",
+        },
+        {
+            "model": "range",
+            "success": "True",
+            "frames_after_convergence": "300",
+            "location_rmse_m": "0.3",
+            "yaw_rmse_deg": "1.0",
+            "frames_to_converge": "20",
+            "hz_after": "40",
+            "seconds_per_frame_before": "3",
+        },
+        {
+            "model": "range",
+            "success": "False",
+            "frames_after_convergence": "",
+            "location_rmse_m": "",
+            "yaw_rmse_deg": "",
+            "frames_to_converge": "",
+            "hz_after": "",
+            "seconds_per_frame_before": "4",
+        },
+    ]
+    (a,) = aggregate(rows, ["model"])
+    assert a["trials"] == 3 and a["successes"] == 2
+    assert a["location_rmse_m"] == pytest.approx(((100 * 0.01 + 300 * 0.09) / 400) ** 0.5)
+    assert a["frames_to_converge_median"] == 15 and a["seconds_before_median"] == 3
