@@ -12,20 +12,13 @@ import sys
 import pytest
 
 from rangemcl.localize import RunOptions, localize_sequence
-from rangemcl.mapping.pipeline import MapSettings, build_map
 from rangemcl.mcl import LocalizerSettings
 from simbed.record import record
 
 
 @pytest.fixture(scope="module")
-def town(tmp_path_factory):
-    root = tmp_path_factory.mktemp("loc_e2e")
-    record("town_small", "mapping", "os1-64", root / "map_run", frames=60, seed=3, progress=False)
-    s = MapSettings()
-    s.poisson.depth = 8
-    s.workers = 2
-    s.scans.every_nth = 2
-    build_map(root / "map_run", root / "map", s)
+def town(small_town_map):
+    root, _ = small_town_map
     record(
         "town_small",
         "mapping",

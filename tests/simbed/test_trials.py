@@ -8,23 +8,14 @@ import csv
 import pytest
 
 from rangemcl.errors import InputError
-from rangemcl.mapping.pipeline import MapSettings, build_map
-from simbed.record import record
 from simbed.trials import SUITES, SuiteConfig, aggregate, run_suite, suite_trials
 
 CONFIG = SuiteConfig(route="mapping", drive_frames=50, frames=30, actors=2, starts=2)
 
 
 @pytest.fixture(scope="module")
-def tiny_map(tmp_path_factory):
-    root = tmp_path_factory.mktemp("trials")
-    record("town_small", "mapping", "os1-64", root / "map_run", frames=50, seed=3, progress=False)
-    s = MapSettings()
-    s.poisson.depth = 8
-    s.workers = 2
-    s.scans.every_nth = 2
-    build_map(root / "map_run", root / "map", s)
-    return root / "map"
+def tiny_map(small_town_map):
+    return small_town_map[1]
 
 
 def test_suite_definitions():
