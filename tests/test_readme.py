@@ -19,3 +19,5 @@ def test_readme_python_example_runs(capsys):
     assert np.isfinite(hits.ranges[0]) and hits.mesh_ids[0] == scope["car"]  # the car stands in front
     assert np.isinf(hits.ranges[1]) and hits.mesh_ids[1] == -1  # the sky
     assert scope["ranges"].shape == (64, 1024)
+    est = scope["info"].estimate  # the localizer found the pose the scan was taken from
+    assert abs(est[0]) < 0.3 and abs(est[1] - 25.0) < 0.3 and abs(est[2]) < 0.02
