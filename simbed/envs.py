@@ -34,6 +34,8 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from rangemcl.mcl import se2_between
+from rangemcl.particles import pose2d
 from rangemcl.rangeimage import RangeImageGeometry
 from rangemcl.sensors import load_spec
 from simbed.routes import distance_to_roads, make_route
@@ -41,17 +43,6 @@ from simbed.sim import Drive, Frame
 from simbed.world import World
 
 MAX_STEP_M = 10.0  # bound of the odometry observation per frame (a car at 100 m/s)
-
-
-def _xyyaw(T: np.ndarray) -> np.ndarray:
-    return np.array([T[0, 3], T[1, 3], math.atan2(T[1, 0], T[0, 0])])
-
-
-def _between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    dyaw = (b[2] - a[2] + math.pi) % (2 * math.pi) - math.pi
-    return np.array([c * dx + s * dy, -s * dx + c * dy, dyaw])
 
 
 class _SimEnv(gym.Env):
@@ -120,8 +111,8 @@ class _SimEnv(gym.Env):
         s = frame.sweep
         rows = np.asarray(self.lidar_spec.row_of_beam)[s.ring.astype(np.int64)]
         image = self.geometry.project(s.points, rows=rows, cols=s.column.astype(np.int64)).ranges
-        odom = _xyyaw(frame.T_odom_sensor)
-        delta = _between(self._last_odom, odom)
+        odom = pose2d(frame.T_odom_sensor)
+        delta = se2_between(self._last_odom, odom)
         self._last_odom = odom
         self._frame = frame
         return {
@@ -132,7 +123,7 @@ class _SimEnv(gym.Env):
 
     def _first_frame(self) -> Frame:
         frame = self.drive.next_frame()
-        self._last_odom = _xyyaw(frame.T_odom_sensor)
+        self._last_odom = pose2d(frame.T_odom_sensor)
         return frame
 
     def render(self):
@@ -179,7 +170,7 @@ class LocalizationTrialEnv(_SimEnv):
         return obs, self._info(frame, None)
 
     def _info(self, frame: Frame, estimate: np.ndarray | None) -> dict[str, Any]:
-        truth = _xyyaw(frame.T_world_sensor)
+        truth = pose2d(frame.T_world_sensor)
         info: dict[str, Any] = {
             "true_pose": truth,
             "frame": frame.index,
@@ -237,7 +228,7 @@ class DriveEnv(_SimEnv):
         frame = self._first_frame()
         obs = self._observe(frame)
         obs["odometry"][:] = 0.0
-        self._pose = _xyyaw(frame.T_world_sensor)
+        self._pose = pose2d(frame.T_world_sensor)
         return obs, {"true_pose": self._pose, "frame": frame.index}
 
     def step(self, action):
@@ -245,7 +236,7 @@ class DriveEnv(_SimEnv):
         self.drive.manual = (float(a[0]), float(a[1]))
         frame = self.drive.next_frame()
         obs = self._observe(frame)
-        pose = _xyyaw(frame.T_world_sensor)
+        pose = pose2d(frame.T_world_sensor)
         moved = float(np.hypot(*(pose[:2] - self._pose[:2])))
         self._pose = pose
         off = float(distance_to_roads(pose[:2][None], self.world.graph)[0]) - self.world.town.road_width_m / 2
