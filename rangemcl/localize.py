@@ -305,13 +305,16 @@ def _poses_4x4(est: np.ndarray, loc: MonteCarloLocalizer, seq: Sequence, first: 
     """Estimated LiDAR poses: x, y, yaw from the filter, z from the map's ground plus the mounting
     height, roll and pitch from the IMU (level without one)."""
     out = np.tile(np.eye(4), (len(est), 1, 1))
-    for k, (x, y, yaw) in enumerate(est):
+    if len(est) == 0:
+        return out
+    out[:, :2, 3] = est[:, :2]
+    out[:, 2, 3] = loc.sensor_z(est[:, :2])
+    for k, yaw in enumerate(est[:, 2]):
         c, s = math.cos(yaw), math.sin(yaw)
         R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
         if seq.imu_roll_pitch is not None:
             R = R @ rotation_roll_pitch(*seq.imu_roll_pitch[first + k])
         out[k, :3, :3] = R
-        out[k, :3, 3] = (x, y, float(loc.sensor_z(np.array([[x, y]]))[0]))
     return out
 
 

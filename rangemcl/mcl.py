@@ -358,12 +358,17 @@ class MonteCarloLocalizer:
             caster.add_mesh(mesh_map.vertices, mesh_map.faces, name="map")
         self.caster = caster
         o = self.settings.observation
-        self.model = ObservationModel(
-            caster, sigma_m=o.sigma_m, margin_m=o.margin_m, cap_m=np.inf if o.cap_m is None else o.cap_m
-        )
-        from rangemcl.models import make_model
+        from rangemcl.models import RangeModel, make_model
 
         self.scorer = make_model(o.model, caster, o, mesh_map)
+        # Eq. 5 residuals (residuals()): the range model's own kernel, or one of the same settings
+        self.model = (
+            self.scorer.kernel
+            if isinstance(self.scorer, RangeModel)
+            else ObservationModel(
+                caster, sigma_m=o.sigma_m, margin_m=o.margin_m, cap_m=np.inf if o.cap_m is None else o.cap_m
+            )
+        )
         m = self.settings.motion
         self.noise = MotionNoise(m.rot_per_rot, m.rot_per_trans, m.trans_per_trans, m.trans_per_rot)
         self.init_cells = drivable_cells(mesh_map, self.settings.init)
