@@ -299,12 +299,8 @@ def run_suite(
     done = {r["key"] for r in read_results(results_path)}
     todo = [t for t in trials if t.key not in done]
     say(f"suite {suite}: {len(trials)} trials, {len(trials) - len(todo)} already done")
-    drives = {}
-    for t in todo:
-        if t.drive_key not in drives:
-            say(f"  drive {t.drive_key}")
-            drives[t.drive_key] = ensure_drive(t, out / "drives", device)
     workers = workers or os.cpu_count() or 1
+    drives = _ensure_drives(todo, out / "drives", device, workers, say)
     threads = max(1, (os.cpu_count() or 1) // workers)
     jobs = [(t, drives[t.drive_key], Path(map_dir), out / "trials", threads, device) for t in todo]
     new_file = not results_path.is_file()
@@ -323,6 +319,22 @@ def run_suite(
     rows = [r for r in read_results(results_path) if r["key"] in keys]
     write_report(suite, rows, out)
     return rows
+
+
+def _ensure_drives(trials: list[Trial], drives_dir: Path, device: str, workers: int, say) -> dict[str, Path]:
+    """Each distinct test drive of the trials, recorded once (in parallel on the local pool)."""
+    first = {}
+    for t in trials:
+        first.setdefault(t.drive_key, t)
+    for key in first:
+        say(f"  drive {key}")
+    if workers <= 1 or len(first) <= 1:
+        return {k: ensure_drive(t, drives_dir, device) for k, t in first.items()}
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(min(workers, len(first))) as pool:
+        futures = {k: pool.submit(ensure_drive, t, drives_dir, device) for k, t in first.items()}
+        return {k: f.result() for k, f in futures.items()}
 
 
 def _execute(jobs, workers: int, backend: str, address: str | None):

@@ -124,28 +124,42 @@ class GroundGrid:
         g = np.asarray(is_ground, bool).reshape(-1)
         if len(v) == 0:
             raise ValueError("no vertices to build a ground grid from")
-        cell_m = float(cell_m)
-        lo, hi = v[:, :2].min(axis=0), v[:, :2].max(axis=0)
-        while True:
-            origin = np.floor(lo / cell_m) * cell_m
-            n = np.floor((hi - origin) / cell_m).astype(np.int64) + 1  # (nx, ny)
-            if n[0] * n[1] <= MAX_GROUND_CELLS:
-                break
-            cell_m *= math.ceil(math.sqrt(n[0] * n[1] / MAX_GROUND_CELLS))
-        nx, ny = int(n[0]), int(n[1])
+        origin, cell_m, (nx, ny) = ground_grid_layout(v[:, :2].min(axis=0), v[:, :2].max(axis=0), cell_m)
         heights = np.full((ny, nx), np.nan, np.float32)
-        pg = v[g]
-        if len(pg):
-            ij = np.floor((pg[:, :2] - origin) / cell_m).astype(np.int64)
-            ij = np.clip(ij, 0, [nx - 1, ny - 1])  # rounding at the far edge
-            cell = ij[:, 1] * nx + ij[:, 0]
-            order = np.lexsort((pg[:, 2], cell))
-            cell, z = cell[order], pg[order, 2]
-            starts = np.flatnonzero(np.r_[True, cell[1:] != cell[:-1]])
-            counts = np.diff(np.r_[starts, len(cell)])
-            median = 0.5 * (z[starts + (counts - 1) // 2] + z[starts + counts // 2])
-            heights.reshape(-1)[cell[starts]] = median
+        fill_cell_medians(heights, v[g], origin, cell_m)
         return cls(origin, cell_m, heights)
+
+
+def ground_grid_layout(lo_xy, hi_xy, cell_m: float) -> tuple[np.ndarray, float, tuple[int, int]]:
+    """``(origin_xy, cell_m, (nx, ny))`` of a ground grid covering ``lo_xy .. hi_xy``: the origin floored to
+    a multiple of the cell size; the cell coarsened (multiplied by a whole number) while the grid would
+    have more than ``MAX_GROUND_CELLS`` cells."""
+    lo, hi = np.asarray(lo_xy, np.float64), np.asarray(hi_xy, np.float64)
+    cell_m = float(cell_m)
+    while True:
+        origin = np.floor(lo / cell_m) * cell_m
+        n = np.floor((hi - origin) / cell_m).astype(np.int64) + 1  # (nx, ny)
+        if n[0] * n[1] <= MAX_GROUND_CELLS:
+            return origin, cell_m, (int(n[0]), int(n[1]))
+        cell_m *= math.ceil(math.sqrt(n[0] * n[1] / MAX_GROUND_CELLS))
+
+
+def fill_cell_medians(heights: np.ndarray, points, origin_xy, cell_m: float) -> None:
+    """Set each cell of ``heights`` (ny, nx) that holds any of ``points`` (N, 3) to the median of their z
+    (points beyond the far edge count in the edge cell); other cells are left as they are."""
+    pg = np.asarray(points, np.float64).reshape(-1, 3)
+    if not len(pg):
+        return
+    ny, nx = heights.shape
+    ij = np.floor((pg[:, :2] - np.asarray(origin_xy, np.float64)) / cell_m).astype(np.int64)
+    ij = np.clip(ij, 0, [nx - 1, ny - 1])  # rounding at the far edge
+    cell = ij[:, 1] * nx + ij[:, 0]
+    order = np.lexsort((pg[:, 2], cell))
+    cell, z = cell[order], pg[order, 2]
+    starts = np.flatnonzero(np.r_[True, cell[1:] != cell[:-1]])
+    counts = np.diff(np.r_[starts, len(cell)])
+    median = 0.5 * (z[starts + (counts - 1) // 2] + z[starts + counts // 2])
+    heights.reshape(-1)[cell[starts]] = median
 
 
 # ---------------------------------------------------------------------------------------------- ground labels
@@ -348,22 +362,13 @@ class MeshMap:
         if self.drive_xy is not None:
             atomic_write(map_dir / "drive.npz", lambda fh: np.savez(fh, xy=self.drive_xy))
             files["drive"] = "drive.npz"
-        doc = {
-            "format": FORMAT_NAME,
-            "format_version": FORMAT_VERSION,
-            "files": files,
-            "counts": {
-                "vertices": self.n_vertices,
-                "triangles": self.n_triangles,
-                "ground_vertices": int(self.is_ground.sum()),
-                "tiles": len(self.tiles),
-            },
-            "tile_size_m": self.tile_size_m,
-            "ground_cell_m": self.ground.cell_m,
-            "extent_m": list(self.extent),
-            "meta": _plain(self.meta),
+        counts = {
+            "vertices": self.n_vertices,
+            "triangles": self.n_triangles,
+            "ground_vertices": int(self.is_ground.sum()),
+            "tiles": len(self.tiles),
         }
-        text = yaml.safe_dump(doc, sort_keys=False, allow_unicode=True)
+        text = map_yaml_text(files, counts, self.tile_size_m, self.ground.cell_m, self.extent, self.meta)
         atomic_write(map_dir / "map.yaml", lambda fh: fh.write(text.encode()))
         return map_dir
 
@@ -463,6 +468,21 @@ class MeshMap:
             drive_xy=drive,
             source_dir=map_dir,
         )
+
+
+def map_yaml_text(files: dict, counts: dict, tile_size_m: float, ground_cell_m: float, extent, meta) -> str:
+    """The text of a map folder's ``map.yaml`` (written last: its presence marks a complete folder)."""
+    doc = {
+        "format": FORMAT_NAME,
+        "format_version": FORMAT_VERSION,
+        "files": files,
+        "counts": counts,
+        "tile_size_m": float(tile_size_m),
+        "ground_cell_m": float(ground_cell_m),
+        "extent_m": [float(x) for x in extent],
+        "meta": _plain(meta),
+    }
+    return yaml.safe_dump(doc, sort_keys=False, allow_unicode=True)
 
 
 def face_tile_ij(vertices: np.ndarray, faces: np.ndarray, origin_xy, tile_size_m: float) -> np.ndarray:
@@ -622,30 +642,46 @@ _PLY_TYPES = {
 
 def write_ply_binary(fh, vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray | None = None) -> None:
     """Binary little-endian PLY: float64 x, y, z (+ uchar red, green, blue), int32 triangle indices."""
+    write_ply_header(fh, len(vertices), len(faces), colours is not None)
+    fh.write(ply_vertex_bytes(vertices, colours))
+    fh.write(ply_face_bytes(faces))
+
+
+def write_ply_header(fh, n_vertices: int, n_faces: int, colours: bool) -> None:
+    """The header of :func:`write_ply_binary`'s PLY (for writers that stream the elements after it)."""
     header = [
         "ply",
         "format binary_little_endian 1.0",
         "comment rangemcl mesh map",
-        f"element vertex {len(vertices)}",
+        f"element vertex {n_vertices}",
     ]
     header += [f"property double {c}" for c in "xyz"]
+    if colours:
+        header += [f"property uchar {c}" for c in ("red", "green", "blue")]
+    header += [f"element face {n_faces}", "property list uchar int vertex_indices", "end_header"]
+    fh.write(("\n".join(header) + "\n").encode("ascii"))
+
+
+def ply_vertex_bytes(vertices: np.ndarray, colours: np.ndarray | None = None) -> bytes:
+    """Vertex records of :func:`write_ply_binary`'s PLY."""
     vfields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
     if colours is not None:
-        header += [f"property uchar {c}" for c in ("red", "green", "blue")]
         vfields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
-    header += [f"element face {len(faces)}", "property list uchar int vertex_indices", "end_header"]
     vrec = np.empty(len(vertices), vfields)
     for k, c in enumerate("xyz"):
         vrec[c] = vertices[:, k]
     if colours is not None:
         for k, c in enumerate(("red", "green", "blue")):
             vrec[c] = colours[:, k]
+    return vrec.tobytes()
+
+
+def ply_face_bytes(faces: np.ndarray) -> bytes:
+    """Face records (triangles) of :func:`write_ply_binary`'s PLY."""
     frec = np.empty(len(faces), [("n", "u1"), ("idx", "<i4", (3,))])
     frec["n"] = 3
     frec["idx"] = faces
-    fh.write(("\n".join(header) + "\n").encode("ascii"))
-    fh.write(vrec.tobytes())
-    fh.write(frec.tobytes())
+    return frec.tobytes()
 
 
 def read_ply_binary(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:

@@ -3,7 +3,8 @@
 Reads like the method: per scan, range-image normals and ground labels; all scans into the world frame,
 cut into tiles (each with a margin) on disk so memory does not grow with the drive; per tile, Poisson
 reconstruction, trimming, cropping to the tile and ground simplification, as independent jobs on all
-cores; the tiles merged into one :class:`MeshMap`, written with the effective config and a report.
+cores; the tiles streamed into the map folder one at a time (:mod:`rangemcl.mapping.assemble`), with the
+effective config and a report.
 """
 
 from __future__ import annotations
@@ -24,8 +25,9 @@ import numpy as np
 from rangemcl.config import write_config
 from rangemcl.dataset import Sequence, load_sequence
 from rangemcl.errors import InputError
+from rangemcl.mapping.assemble import assemble_map
 from rangemcl.mapping.ground import label_ground
-from rangemcl.mapping.meshmap import MeshMap, thin_path
+from rangemcl.mapping.meshmap import thin_path
 from rangemcl.mapping.normals import scan_normals
 from rangemcl.mapping.poisson import poisson_mesh, transfer_labels
 from rangemcl.mapping.simplify import simplify_ground
@@ -110,14 +112,18 @@ class BuildReport:
     ground_triangles_before: int = 0
     ground_triangles_after: int = 0
     seconds: dict = field(default_factory=dict)
-    peak_rss_mb: float = 0.0
+    peak_rss_mb: float = 0.0  # the larger of the two below
+    peak_rss_main_mb: float = 0.0  # this process (scans, assembling the map folder)
+    peak_rss_tile_jobs_mb: float = 0.0  # the largest tile job (0 when the tiles ran in this process)
     tile_stats: list = field(default_factory=list)
 
 
+def _rss_mb(who) -> float:
+    return resource.getrusage(who).ru_maxrss / 1024.0
+
+
 def _peak_rss_mb() -> float:
-    self_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    child_kb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    return max(self_kb, child_kb) / 1024.0
+    return max(_rss_mb(resource.RUSAGE_SELF), _rss_mb(resource.RUSAGE_CHILDREN))
 
 
 # ---------------------------------------------------------------------------------------------- stages
@@ -342,13 +348,9 @@ def build_map(
                 stats = list(_progress(pool.map(build_tile, jobs), progress, "tiles", total=len(jobs)))
         report.seconds["tiles"] = time.perf_counter() - t1
         report.tile_stats = stats
-        meshes = [np.load(j.out) for j in jobs]
-        vertices, faces, is_ground = _merge([(m["vertices"], m["faces"], m["is_ground"]) for m in meshes])
-        if len(faces) == 0:
-            raise InputError(f"{seq.root}: the reconstruction is empty (too few points with normals)")
+        t2 = time.perf_counter()
         for key in ("triangles_before_simplify", "ground_triangles_before", "ground_triangles_after"):
             setattr(report, key, int(sum(s[key] for s in stats)))
-        report.tiles = len(jobs)
         meta = {
             "frame": "world (the sequence's poses frame)",
             "source_sequence": str(Path(seq.root).resolve()),
@@ -358,13 +360,24 @@ def build_map(
             "scans_used": report.scans_used,
             "created_by": "rangemcl build-map",
         }
-        the_map = MeshMap.from_mesh(vertices, faces, is_ground, tile_size_m=settings.tiles.size_m, meta=meta)
-        the_map.drive_xy = thin_path(seq.poses[:, :2, 3], 1.0)
-        report.triangles = the_map.n_triangles
-        the_map.save(out_dir)
+        if sum(s["triangles"] for s in stats) == 0:
+            raise InputError(f"{seq.root}: the reconstruction is empty (too few points with normals)")
+        counts = assemble_map(
+            [j.out for j in jobs],
+            out_dir,
+            tile_size_m=settings.tiles.size_m,
+            work_dir=work,
+            meta=meta,
+            drive_xy=thin_path(seq.poses[:, :2, 3], 1.0),
+        )
+        report.tiles = counts["tiles"]
+        report.triangles = counts["triangles"]
+        report.seconds["assemble"] = time.perf_counter() - t2
         write_config(settings, out_dir / "config.yaml")
         report.seconds["total"] = time.perf_counter() - clock
         report.peak_rss_mb = _peak_rss_mb()
+        report.peak_rss_main_mb = _rss_mb(resource.RUSAGE_SELF)
+        report.peak_rss_tile_jobs_mb = _rss_mb(resource.RUSAGE_CHILDREN)
         (out_dir / "report.json").write_text(json.dumps(report.__dict__, indent=2, default=_jsonable))
         return report
     finally:
@@ -377,19 +390,6 @@ def _jsonable(x):
     if isinstance(x, np.ndarray):
         return x.tolist()
     return str(x)
-
-
-def _merge(parts):
-    vs, fs, gs = [], [], []
-    offset = 0
-    for v, f, g in parts:
-        vs.append(v)
-        fs.append(f + offset)
-        gs.append(g)
-        offset += len(v)
-    if not vs:
-        return np.zeros((0, 3)), np.zeros((0, 3), np.int32), np.zeros(0, bool)
-    return np.concatenate(vs), np.concatenate(fs).astype(np.int32), np.concatenate(gs).astype(bool)
 
 
 def _check_out_dir(out: Path) -> None:
