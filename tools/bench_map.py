@@ -52,7 +52,8 @@ print(json.dumps({"scans": r.scans_used, "seconds": time.perf_counter() - t0, "t
                   "triangles_before_simplify": r.triangles_before_simplify, "tiles": r.tiles,
                   "points": r.points_used, "stage_seconds": r.seconds,
                   "peak_rss_mb": max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,
-                                     resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss) / 1024}))
+                                     resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss) / 1024,
+                  "peak_rss_main_mb": r.peak_rss_main_mb, "peak_rss_tile_jobs_mb": r.peak_rss_tile_jobs_mb}))
 """
 
 
@@ -90,7 +91,8 @@ def main() -> None:
         print(
             f"{row['scans']:>6} scans  {row['points'] / 1e6:6.1f} M points  {row['tiles']:>3} tiles  "
             f"{row['seconds']:7.1f} s  (scans {row['stage_seconds']['scans']:.0f} s, "
-            f"tiles {row['stage_seconds']['tiles']:.0f} s)  peak {row['peak_rss_mb']:6.0f} MB  "
+            f"tiles {row['stage_seconds']['tiles']:.0f} s)  peak {row['peak_rss_mb']:6.0f} MB "
+            f"(main {row['peak_rss_main_mb']:.0f}, tile jobs {row['peak_rss_tile_jobs_mb']:.0f})  "
             f"{row['triangles_before_simplify']:>9,} -> {row['triangles']:>9,} triangles"
         )
     print(f"(this process: peak {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB)")

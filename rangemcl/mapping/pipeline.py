@@ -10,6 +10,7 @@ effective config and a report.
 from __future__ import annotations
 
 import json
+import multiprocessing
 import os
 import resource
 import shutil
@@ -344,7 +345,9 @@ def build_map(
         if workers == 1 or len(jobs) == 1:
             stats = [build_tile(j) for j in _progress(jobs, progress, "tiles")]
         else:
-            with ProcessPoolExecutor(min(workers, len(jobs))) as pool:
+            # spawned workers: each one's peak memory is its own (a forked one counts the parent's pages)
+            spawn = multiprocessing.get_context("spawn")
+            with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=spawn) as pool:
                 stats = list(_progress(pool.map(build_tile, jobs), progress, "tiles", total=len(jobs)))
         report.seconds["tiles"] = time.perf_counter() - t1
         report.tile_stats = stats
