@@ -19,6 +19,8 @@ watches).
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from rangemcl.errors import InputError
@@ -103,23 +105,21 @@ class LikelihoodFieldModel(ScoringModel):
 
     def __init__(
         self,
-        vertices: np.ndarray,
-        faces: np.ndarray,
+        centres: np.ndarray,
         *,
         voxel_m: float = 0.1,
         sigma_m: float = 0.2,
         weight: float = 20.0,
         z_hit: float = 0.9,
-        max_points: int = 30_000_000,
-        seed: int = 0,
     ):
+        """``centres``: the surface voxels' centres (:func:`surface_voxels` or :func:`cached_surface_voxels`
+        of the map)."""
         from scipy.spatial import cKDTree
 
         self.voxel = float(voxel_m)
         self.sigma = float(sigma_m)
         self.weight = float(weight)
         self.z_hit, self.z_rand = float(z_hit), 1.0 - float(z_hit)
-        centres = surface_voxels(vertices, faces, self.voxel, max_points=max_points, seed=seed)
         self.voxels = len(centres)
         self.tree = cKDTree(centres)
 
@@ -144,28 +144,71 @@ class LikelihoodFieldModel(ScoringModel):
 
 
 def surface_voxels(
-    vertices, faces, voxel_m: float, *, max_points: int = 30_000_000, seed: int = 0
+    vertices, faces, voxel_m: float, *, max_points: int = 400_000_000, seed: int = 0, chunk: int = 8_000_000
 ) -> np.ndarray:
-    """Centres of the ``voxel_m`` voxels a triangle mesh's surface passes through (the surface sampled at
-    about three points per voxel face, then one point per occupied voxel)."""
+    """Centres of the ``voxel_m`` voxels a triangle mesh's surface passes through: each triangle sampled
+    at random points, about three per voxel face of its area (at least one; fewer for all when the total
+    would pass ``max_points``), then one centre per occupied voxel. Sampled ``chunk`` points at a time, so
+    memory follows the number of voxels, not of samples."""
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int64)
     if len(f) == 0:
         raise InputError("likelihood field: the map has no triangles")
     a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
     area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-    count = int(min(max_points, max(len(f), 3.0 * area.sum() / voxel_m**2)))
+    per = 3.0 * area / voxel_m**2
+    scale = min(1.0, max_points / max(per.sum(), 1.0))
+    counts = np.maximum(1, np.ceil(per * scale)).astype(np.int64)
     rng = np.random.default_rng(seed)
-    tri = rng.choice(len(f), count, p=area / area.sum())
-    r1, r2 = np.sqrt(rng.uniform(size=count)), rng.uniform(size=count)
-    pts = (1 - r1)[:, None] * a[tri] + (r1 * (1 - r2))[:, None] * b[tri] + (r1 * r2)[:, None] * c[tri]
-    ijk = np.floor(pts / voxel_m).astype(np.int64)
-    lo = ijk.min(axis=0)
-    ijk -= lo
-    span = ijk.max(axis=0) + 1
-    keys = np.unique((ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2])  # one int per voxel: fast
-    ijk = np.column_stack([keys // (span[1] * span[2]), (keys // span[2]) % span[1], keys % span[2]])
+    lo = np.floor(v.min(axis=0) / voxel_m).astype(np.int64) - 1
+    span = np.floor(v.max(axis=0) / voxel_m).astype(np.int64) + 2 - lo
+    ends = np.cumsum(counts)
+    keys, start = [], 0
+    while start < len(f):
+        stop = max(start + 1, int(np.searchsorted(ends, ends[start] - counts[start] + chunk, side="right")))
+        tri = np.repeat(np.arange(start, stop), counts[start:stop])
+        r1, r2 = np.sqrt(rng.uniform(size=len(tri))), rng.uniform(size=len(tri))
+        pts = (1 - r1)[:, None] * a[tri] + (r1 * (1 - r2))[:, None] * b[tri] + (r1 * r2)[:, None] * c[tri]
+        ijk = np.floor(pts / voxel_m).astype(np.int64) - lo
+        keys.append(np.unique((ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]))  # one int per voxel
+        start = stop
+    k = np.unique(np.concatenate(keys))
+    ijk = np.column_stack([k // (span[1] * span[2]), (k // span[2]) % span[1], k % span[2]])
     return (ijk + lo + 0.5) * voxel_m
+
+
+def cached_surface_voxels(mesh_map, voxel_m: float, seed: int = 0) -> np.ndarray:
+    """:func:`surface_voxels` of a map, kept in a cache file when the map was loaded from a folder (a
+    town-sized map takes minutes): ``$RANGEMCL_CACHE_DIR``, else ``$XDG_CACHE_HOME/rangemcl``, else
+    ``~/.cache/rangemcl``; keyed by the map's mesh file (path, size, modification time) and the settings."""
+    import hashlib
+    import os
+
+    from rangemcl.atomic import atomic_write
+
+    src = getattr(mesh_map, "source_dir", None)
+    mesh = None if src is None else Path(src) / "mesh.ply"
+    if mesh is None or not mesh.is_file():
+        return surface_voxels(mesh_map.vertices, mesh_map.faces, voxel_m, seed=seed)
+    st = mesh.stat()
+    key = f"{mesh.resolve()}|{st.st_size}|{st.st_mtime_ns}|{voxel_m!r}|{seed}|v2"
+    root = os.environ.get("RANGEMCL_CACHE_DIR") or (
+        Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "rangemcl"
+    )
+    path = Path(root) / f"surface-voxels-{hashlib.sha1(key.encode()).hexdigest()[:16]}.npy"
+    try:
+        centres = np.load(path)
+        if centres.ndim == 2 and centres.shape[1] == 3:
+            return centres
+    except (OSError, ValueError):
+        pass
+    centres = surface_voxels(mesh_map.vertices, mesh_map.faces, voxel_m, seed=seed)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write(path, lambda fh: np.save(fh, centres))
+    except (OSError, InputError):
+        pass  # no cache: only slower next time
+    return centres
 
 
 def make_model(name: str, caster, settings, mesh_map) -> ScoringModel:
@@ -183,8 +226,7 @@ def make_model(name: str, caster, settings, mesh_map) -> ScoringModel:
         return HistogramModel(kernel, o.histogram_bins, o.max_range_m, o.histogram_sigma)
     if name == "likelihood_field":
         return LikelihoodFieldModel(
-            mesh_map.vertices,
-            mesh_map.faces,
+            cached_surface_voxels(mesh_map, o.field_voxel_m),
             voxel_m=o.field_voxel_m,
             sigma_m=o.field_sigma_m,
             weight=o.field_weight,

@@ -129,6 +129,15 @@ def demo(
     typer.echo(f"plots: {out / 'results'}/trajectory.png, error.png, particles.png")
 
 
+def _int_list(text: str, option: str) -> tuple[int, ...]:
+    from rangemcl.errors import InputError
+
+    try:
+        return tuple(int(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise InputError(f"{option}: expected integers separated by commas, got {text!r}") from None
+
+
 @app.command()
 def trials(
     suite: str = typer.Argument(..., help="particles, sensors, models, kidnap or runtime."),
@@ -143,6 +152,13 @@ def trials(
     drive_frames: int = typer.Option(1000, help="Frames of each test drive."),
     frames: int = typer.Option(250, help="Frames of each trial."),
     starts: int = typer.Option(10, help="Start points per setting."),
+    counts: str = typer.Option(
+        None,
+        help="Suite 'particles': particle counts, comma-separated (default 1000,5000,10000,50000,100000).",
+    ),
+    models: str = typer.Option(
+        None, help="Suites 'particles' and 'models': observation models, comma-separated (default: all four)."
+    ),
     workers: int = typer.Option(None, help="Trials in parallel (default: all cores)."),
     backend: str = typer.Option("process", help="process (local pool) or ray."),
     address: str = typer.Option(None, help="Ray cluster address (backend ray; default: a local instance)."),
@@ -160,6 +176,8 @@ def trials(
         frames=frames,
         starts=starts,
         sensor=sensor,
+        particle_counts=None if counts is None else _int_list(counts, "--counts"),
+        models=None if models is None else tuple(m.strip() for m in models.split(",") if m.strip()),
     )
     rows = run_suite(
         suite,

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from rangemcl.errors import InputError
+from rangemcl.models import MODEL_NAMES
 
 SUITES = ("particles", "sensors", "models", "kidnap", "runtime")
 PAPER_SENSORS = {  # the paper's Carla figures (location RMSE m, yaw RMSE deg), ../shared/SENSORS.md
@@ -84,6 +85,8 @@ class SuiteConfig:
     starts: int = 10
     sensor: str = "os1-64"
     particles: int = 10000  # global localization (suite 'particles' varies it); quick suites use 2,000
+    particle_counts: tuple[int, ...] | None = None  # suite 'particles' (default 1k, 5k, 10k, 50k, 100k)
+    models: tuple[str, ...] | None = None  # suites 'particles' and 'models' (default: all four)
 
 
 def suite_trials(suite: str, quick: bool = False, config: SuiteConfig | None = None) -> list[Trial]:
@@ -91,6 +94,11 @@ def suite_trials(suite: str, quick: bool = False, config: SuiteConfig | None = N
     c = config or SuiteConfig()
     if suite not in SUITES:
         raise InputError(f"suite {suite!r}: expected one of {', '.join(SUITES)}")
+    bad = [m for m in c.models or () if m not in MODEL_NAMES]
+    if bad:
+        raise InputError(f"observation model {bad[0]!r}: expected one of {', '.join(MODEL_NAMES)}")
+    if any(not isinstance(n, int) or n < 1 for n in c.particle_counts or ()):
+        raise InputError(f"particle counts must be positive integers, got {c.particle_counts}")
     starts = 2 if quick else c.starts
     default_particles = min(c.particles, 2000) if quick else c.particles
 
@@ -128,14 +136,14 @@ def suite_trials(suite: str, quick: bool = False, config: SuiteConfig | None = N
         return out
 
     if suite == "particles":
-        counts = [300, 1000] if quick else [1000, 5000, 10000, 50000, 100000]
-        models = ["range", "overlap"] if quick else ["range", "overlap", "likelihood_field", "histogram"]
+        counts = [300, 1000] if quick else list(c.particle_counts or (1000, 5000, 10000, 50000, 100000))
+        models = ["range", "overlap"] if quick else list(c.models or MODEL_NAMES)
         return [t for m in models for p in counts for t in trials(particles=p, model=m)]
     if suite == "sensors":
         sensors = ["vlp-16", "os1-64"] if quick else ["mq-8", "vlp-16", "hdl-32e", "hdl-64e", "os1-128"]
         return [t for s in sensors for t in trials(sensor=s, n=1 if quick else starts)]
     if suite == "models":
-        models = ["range", "overlap", "likelihood_field", "histogram"]
+        models = list(c.models or MODEL_NAMES)
         routes = [c.route] if quick else ["test-1", "test-2"]
         n = 1 if quick else max(1, starts // 2)
         return [t for m in models for r in routes for t in trials(route=r, model=m, n=n)]

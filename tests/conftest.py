@@ -5,6 +5,15 @@ from __future__ import annotations
 import pytest
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _private_cache(tmp_path_factory):
+    """rangemcl's cache files (surface voxels of maps) go to a folder of this test session."""
+    mp = pytest.MonkeyPatch()
+    mp.setenv("RANGEMCL_CACHE_DIR", str(tmp_path_factory.mktemp("rangemcl-cache")))
+    yield
+    mp.undo()
+
+
 @pytest.fixture(scope="session")
 def small_town_map(tmp_path_factory):
     """A map of the first 60 frames (about 40 m) of town_small's mapping route: ``(root, map_dir)`` with the

@@ -63,7 +63,7 @@ def test_map_from_a_drive_matches_the_true_surface(drive):
     saved = json.loads((out / "report.json").read_text())
     assert saved["scans_used"] == 12
     # tile jobs ran in spawned workers, so the two peaks are measured apart
-    assert 0 < saved["peak_rss_tile_jobs_mb"] and 0 < saved["peak_rss_main_mb"]
+    assert saved["peak_rss_tile_jobs_mb"] > 0 and saved["peak_rss_main_mb"] > 0
     assert saved["peak_rss_mb"] == max(saved["peak_rss_tile_jobs_mb"], saved["peak_rss_main_mb"])
 
 

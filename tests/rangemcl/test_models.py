@@ -82,6 +82,27 @@ def test_surface_voxels_cover_a_plane_and_nothing_else():
         surface_voxels(v, np.zeros((0, 3), int), 0.1)
 
 
+def test_surface_voxels_of_a_map_are_cached_and_follow_the_mesh_file(tmp_path, monkeypatch):
+    import os
+
+    import rangemcl.models as models
+    from rangemcl.mapping.meshmap import MeshMap
+
+    monkeypatch.setenv("RANGEMCL_CACHE_DIR", str(tmp_path / "cache"))
+    v = np.array([[0, 0, 0], [4, 0, 0], [4, 3, 0], [0, 3, 0]], float)
+    MeshMap.from_mesh(v, np.array([[0, 1, 2], [0, 2, 3]])).save(tmp_path / "map")
+    m = MeshMap.load(tmp_path / "map")
+    first = models.cached_surface_voxels(m, 0.1)
+    assert len(list((tmp_path / "cache").glob("surface-voxels-*.npy"))) == 1
+    calls = []
+    monkeypatch.setattr(models, "surface_voxels", lambda *a, **k: calls.append(1) or np.zeros((1, 3)))
+    np.testing.assert_array_equal(models.cached_surface_voxels(m, 0.1), first)  # from the cache
+    assert calls == []
+    st = (tmp_path / "map" / "mesh.ply").stat()
+    os.utime(tmp_path / "map" / "mesh.ply", ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    assert len(models.cached_surface_voxels(m, 0.1)) == 1 and calls == [1]  # a changed file: computed
+
+
 def scan_from(caster, town, pose):
     z = float(town.ground_height(pose[0], pose[1])) + 1.73
     geo = RangeImageGeometry.for_spec(load_spec("hdl-32e").with_columns(180))

@@ -41,6 +41,20 @@ def test_suite_definitions():
         suite_trials("nope")
 
 
+def test_suite_subsets_of_counts_and_models():
+    c = SuiteConfig(starts=3, particle_counts=(1000, 5000), models=("range", "histogram"))
+    got = suite_trials("particles", config=c)
+    assert len(got) == 2 * 2 * 3
+    assert {(t.particles, t.model) for t in got} == {
+        (p, m) for p in (1000, 5000) for m in ("range", "histogram")
+    }
+    assert {t.model for t in suite_trials("models", config=c)} == {"range", "histogram"}
+    with pytest.raises(InputError, match="observation model 'beam'"):
+        suite_trials("particles", config=SuiteConfig(models=("beam",)))
+    with pytest.raises(InputError, match="particle counts"):
+        suite_trials("particles", config=SuiteConfig(particle_counts=(0,)))
+
+
 def test_quick_suite_writes_results_table_and_figure_and_resumes(tiny_map, tmp_path):
     out = tmp_path / "sensors"
     lines: list[str] = []
