@@ -24,11 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
-STREAMED = """
+# each step runs in a fresh interpreter: PRELUDE, then its body, then EPILOGUE
+PRELUDE = """
 import json, sys, time
 from pathlib import Path
 import numpy as np
-from rangemcl.mapping.assemble import assemble_map
 work = Path(sys.argv[1])
 parts = sorted((work / "tiles").glob("*.npz"))
 def hwm_mb():  # this process's own high-water mark (ru_maxrss would include the parent's, across fork + exec)
@@ -37,25 +37,20 @@ def hwm_mb():  # this process's own high-water mark (ru_maxrss would include the
             return int(line.split()[1]) / 1024
 base = hwm_mb()
 t0 = time.perf_counter()
+"""
+
+EPILOGUE = """
+print(json.dumps({"seconds": time.perf_counter() - t0, "baseline_mb": base, "peak_mb": hwm_mb()}))
+"""
+
+STREAMED = """
+from rangemcl.mapping.assemble import assemble_map
 assemble_map(parts, work / "streamed", tile_size_m=float(sys.argv[2]), work_dir=work / "spool",
              meta={"created_by": "bench_assemble"}, drive_xy=None)
-print(json.dumps({"seconds": time.perf_counter() - t0, "baseline_mb": base,
-                  "peak_mb": hwm_mb()}))
 """
 
 IN_MEMORY = """
-import json, sys, time
-from pathlib import Path
-import numpy as np
 from rangemcl.mapping.meshmap import MeshMap
-work = Path(sys.argv[1])
-parts = sorted((work / "tiles").glob("*.npz"))
-def hwm_mb():  # this process's own high-water mark (ru_maxrss would include the parent's, across fork + exec)
-    for line in open("/proc/self/status"):
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) / 1024
-base = hwm_mb()
-t0 = time.perf_counter()
 vs, fs, gs, offset = [], [], [], 0
 for p in parts:
     z = np.load(p)
@@ -64,14 +59,14 @@ for p in parts:
 m = MeshMap.from_mesh(np.concatenate(vs), np.concatenate(fs), np.concatenate(gs),
                       tile_size_m=float(sys.argv[2]), meta={"created_by": "bench_assemble"})
 m.save(work / "in_memory")
-print(json.dumps({"seconds": time.perf_counter() - t0, "baseline_mb": base,
-                  "peak_mb": hwm_mb()}))
 """
 
 
 def run(script: str, work: Path, tile_m: float) -> dict:
     proc = subprocess.run(
-        [sys.executable, "-c", script, str(work), str(tile_m)], capture_output=True, text=True
+        [sys.executable, "-c", PRELUDE + script + EPILOGUE, str(work), str(tile_m)],
+        capture_output=True,
+        text=True,
     )
     if proc.returncode != 0:
         print(proc.stderr[-3000:], file=sys.stderr)
