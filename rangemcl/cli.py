@@ -150,7 +150,8 @@ def build_map(
     typer.echo(
         f"wrote {out}: {r.triangles:,} triangles in {r.tiles} tiles from {r.scans_used}/{r.scans_total} "
         f"scans ({r.points_used:,} points; ground simplification {r.triangles_before_simplify:,} -> "
-        f"{r.triangles:,} triangles) in {r.seconds.get('total', 0):.1f} s, peak memory {r.peak_rss_mb:.0f} MB"
+        f"{r.triangles:,} triangles) in {r.seconds.get('total', 0):.1f} s; peak memory "
+        f"{r.peak_rss_main_mb:.0f} MB (this process), {r.peak_rss_tile_jobs_mb:.0f} MB (largest tile job)"
     )
     if r.scans_skipped_empty or r.points_nonfinite:
         typer.echo(
