@@ -159,6 +159,9 @@ def trials(
     models: str = typer.Option(
         None, help="Suites 'particles' and 'models': observation models, comma-separated (default: all four)."
     ),
+    sensors: str = typer.Option(
+        None, help="Suite 'sensors': sensor presets, comma-separated (default: the paper's five)."
+    ),
     workers: int = typer.Option(None, help="Trials in parallel (default: all cores)."),
     backend: str = typer.Option("process", help="process (local pool) or ray."),
     address: str = typer.Option(None, help="Ray cluster address (backend ray; default: a local instance)."),
@@ -178,6 +181,7 @@ def trials(
         sensor=sensor,
         particle_counts=None if counts is None else _int_list(counts, "--counts"),
         models=None if models is None else tuple(m.strip() for m in models.split(",") if m.strip()),
+        sensors=None if sensors is None else tuple(m.strip() for m in sensors.split(",") if m.strip()),
     )
     rows = run_suite(
         suite,

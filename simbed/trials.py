@@ -87,6 +87,7 @@ class SuiteConfig:
     particles: int = 10000  # global localization (suite 'particles' varies it); quick suites use 2,000
     particle_counts: tuple[int, ...] | None = None  # suite 'particles' (default 1k, 5k, 10k, 50k, 100k)
     models: tuple[str, ...] | None = None  # suites 'particles' and 'models' (default: all four)
+    sensors: tuple[str, ...] | None = None  # suite 'sensors' (default: the paper's five presets)
 
 
 def suite_trials(suite: str, quick: bool = False, config: SuiteConfig | None = None) -> list[Trial]:
@@ -140,7 +141,7 @@ def suite_trials(suite: str, quick: bool = False, config: SuiteConfig | None = N
         models = ["range", "overlap"] if quick else list(c.models or MODEL_NAMES)
         return [t for m in models for p in counts for t in trials(particles=p, model=m)]
     if suite == "sensors":
-        sensors = ["vlp-16", "os1-64"] if quick else ["mq-8", "vlp-16", "hdl-32e", "hdl-64e", "os1-128"]
+        sensors = ["vlp-16", "os1-64"] if quick else list(c.sensors or PAPER_SENSORS)
         return [t for s in sensors for t in trials(sensor=s, n=1 if quick else starts)]
     if suite == "models":
         models = list(c.models or MODEL_NAMES)

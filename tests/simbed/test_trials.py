@@ -49,6 +49,9 @@ def test_suite_subsets_of_counts_and_models():
         (p, m) for p in (1000, 5000) for m in ("range", "histogram")
     }
     assert {t.model for t in suite_trials("models", config=c)} == {"range", "histogram"}
+    some = suite_trials("sensors", config=SuiteConfig(sensors=("os1-128",), starts=10))
+    assert {t.sensor for t in some} == {"os1-128"}
+    assert {t.key for t in some} <= {t.key for t in suite_trials("sensors", config=SuiteConfig(starts=10))}
     with pytest.raises(InputError, match="observation model 'beam'"):
         suite_trials("particles", config=SuiteConfig(models=("beam",)))
     with pytest.raises(InputError, match="particle counts"):
