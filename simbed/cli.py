@@ -166,6 +166,9 @@ def trials(
     backend: str = typer.Option("process", help="process (local pool) or ray."),
     address: str = typer.Option(None, help="Ray cluster address (backend ray; default: a local instance)."),
     device: str = typer.Option("cpu", help="Warp device: cpu or cuda."),
+    report_only: bool = typer.Option(
+        False, help="Run nothing: write the table and figure from the trials already in results.csv."
+    ),
 ) -> None:
     """Run (or continue) one of the paper's experiments as a suite of localization trials."""
     from simbed.trials import SuiteConfig, run_suite
@@ -194,6 +197,7 @@ def trials(
         address=address,
         device=device,
         say=typer.echo,
+        report_only=report_only,
     )
     ok = sum(str(r["success"]).lower() == "true" for r in rows)
     typer.echo(

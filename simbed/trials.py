@@ -295,11 +295,25 @@ def run_suite(
     address: str | None = None,
     device: str = "cpu",
     say=print,
+    report_only: bool = False,
 ) -> list[dict]:
-    """Run (or continue) a suite; write results.csv, SUITE.md and SUITE.png; return the suite's rows."""
+    """Run (or continue) a suite; write results.csv, SUITE.md and SUITE.png; return the suite's rows.
+
+    ``report_only``: run nothing; write SUITE.md and SUITE.png from the trials already in results.csv
+    (e.g. of a suite stopped part-way; the table counts the trials it holds)."""
     from rangemcl.mapping.meshmap import MeshMap
 
     out = Path(out_dir)
+    if report_only:
+        keys = {t.key for t in suite_trials(suite, quick, config)}
+        rows = [r for r in read_results(out / "results.csv") if r["key"] in keys]
+        if not rows:
+            raise InputError(
+                f"{out / 'results.csv'}: no finished trial of suite {suite!r} with these settings"
+            )
+        say(f"suite {suite}: {len(rows)} of {len(keys)} trials finished; report only")
+        write_report(suite, rows, out)
+        return rows
     (out / "drives").mkdir(parents=True, exist_ok=True)
     (out / "trials").mkdir(parents=True, exist_ok=True)
     MeshMap.load(map_dir)  # a clear error now rather than in every worker

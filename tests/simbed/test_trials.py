@@ -73,6 +73,15 @@ def test_quick_suite_writes_results_table_and_figure_and_resumes(tiny_map, tmp_p
     assert "2 already done" in again[0] and len(rows2) == 2
     with (out / "results.csv").open() as fh:
         assert len(list(csv.DictReader(fh))) == 2  # nothing ran twice
+    # a report of part of the results (a suite stopped part-way): one of the two trials
+    lines = (out / "results.csv").read_text().splitlines(keepends=True)
+    (out / "results.csv").write_text("".join(lines[:2]))  # the header and the first trial
+    (out / "sensors.md").unlink()
+    part = run_suite("sensors", out, tiny_map, quick=True, config=CONFIG, say=again.append, report_only=True)
+    assert len(part) == 1 and "1 of 2 trials finished" in again[-1]
+    assert "1 trials" in (out / "sensors.md").read_text()
+    with pytest.raises(InputError, match="no finished trial"):
+        run_suite("kidnap", out, tiny_map, quick=True, config=CONFIG, report_only=True)
 
 
 def test_suite_on_a_local_ray_instance(tiny_map, tmp_path):
