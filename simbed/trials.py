@@ -429,6 +429,7 @@ def aggregate(rows: list[dict], by: list[str]) -> list[dict]:
         w = np.array([_num(r["frames_after_convergence"]) for r in good])
         loc = np.array([_num(r["location_rmse_m"]) for r in good])
         yaw = np.array([_num(r["yaw_rmse_deg"]) for r in good])
+        med = [_num(r["location_median_m"]) for r in good if r.get("location_median_m") not in ("", None)]
         conv = [_num(r["frames_to_converge"]) for r in rs if r["frames_to_converge"] not in ("", None)]
         hz = [_num(r["hz_after"]) for r in rs if r["hz_after"] not in ("", None)]
         before = [
@@ -450,6 +451,7 @@ def aggregate(rows: list[dict], by: list[str]) -> list[dict]:
                 "yaw_rmse_deg": float(np.sqrt(np.sum(w * yaw**2) / w.sum()))
                 if len(good) and w.sum() > 0
                 else None,
+                "location_median_m": float(np.median(med)) if med else None,
                 "location_rmse_mean_m": float(np.mean(loc)) if len(good) else None,
                 "location_rmse_std_m": float(np.std(loc)) if len(good) else None,
                 "yaw_rmse_mean_deg": float(np.mean(yaw)) if len(good) else None,
@@ -490,10 +492,13 @@ def write_report(suite: str, rows: list[dict], out: Path) -> tuple[Path, Path]:
         f"# simbed trials: {suite}",
         "",
         f"{len(rows)} trials; RMSE over the frames after convergence of "
-        "the successful trials; success = location error < 5 m at every 100th frame after convergence.",
+        "the successful trials; success = location error < 5 m at every 100th frame after convergence; "
+        "location_median_m = median over the successful trials of each one's median error after convergence.",
         "",
     ]
     cols = [*by, "trials", "successes", "location_rmse_m", "yaw_rmse_deg", "frames_to_converge_median"]
+    if suite in ("sensors", "particles"):
+        cols.insert(cols.index("yaw_rmse_deg"), "location_median_m")
     if suite == "models":
         cols += ["location_rmse_mean_m", "location_rmse_std_m", "yaw_rmse_mean_deg", "yaw_rmse_std_deg"]
     if suite == "sensors":
