@@ -518,12 +518,19 @@ def write_report(suite: str, rows: list[dict], out: Path) -> tuple[Path, Path]:
 
     fig, ax = plt.subplots(figsize=(7, 4.5))
     if suite == "particles":
-        for model in sorted({a["model"] for a in agg}):
-            pts = [
-                (int(_num(a["particles"])), a["successes"] / a["trials"]) for a in agg if a["model"] == model
-            ]
-            pts.sort()
-            ax.plot([p for p, _ in pts], [s for _, s in pts], "o-", label=model)
+        names = sorted({a["model"] for a in agg})
+        for i, model in enumerate(names):
+            pts = sorted(
+                (int(_num(a["particles"])), a["successes"], a["trials"]) for a in agg if a["model"] == model
+            )
+            shift = 1.0 + 0.04 * (i - (len(names) - 1) / 2)  # side by side where the rates coincide
+            ax.plot(
+                [p * shift for p, _, _ in pts],
+                [k / n for _, k, n in pts],
+                marker="osD^v<>"[i % 7],
+                linestyle=("-", "--", ":", "-.")[i % 4],
+                label=f"{model} (trials per point: {'/'.join(str(n) for _, _, n in pts)})",
+            )
         ax.set_xscale("log")
         ax.set_xlabel("particles")
         ax.set_ylabel("success rate")
