@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 BUILD = """
-import json, resource, sys, time
+import json, sys, time
 from rangemcl.config import load_config
 from rangemcl.dataset import load_sequence, SequenceWriter
 from rangemcl.mapping.pipeline import MapSettings, build_map
@@ -51,8 +51,7 @@ r = build_map(seq_dir, out, settings)
 print(json.dumps({"scans": r.scans_used, "seconds": time.perf_counter() - t0, "triangles": r.triangles,
                   "triangles_before_simplify": r.triangles_before_simplify, "tiles": r.tiles,
                   "points": r.points_used, "stage_seconds": r.seconds,
-                  "peak_rss_mb": max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,
-                                     resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss) / 1024,
+                  "peak_rss_mb": r.peak_rss_mb,
                   "peak_rss_main_mb": r.peak_rss_main_mb, "peak_rss_tile_jobs_mb": r.peak_rss_tile_jobs_mb}))
 """
 

@@ -119,7 +119,7 @@ def assemble_map(
             cell = np.clip(np.floor((pg[:, :2] - g_origin) / g_cell).astype(np.int64), 0, [gnx - 1, gny - 1])
             owner = _tile_keys(*np.floor((g_origin + cell * g_cell - origin) / tile_size_m).T)
             for key in np.unique(owner):
-                part = spool / f"ground_{n}_{len(ground_parts.get(int(key), []))}_{key}.npy"
+                part = spool / f"ground_{n}_{key}.npy"  # tile n's ground vertices in key's cells
                 np.save(part, pg[owner == key])
                 ground_parts.setdefault(int(key), []).append(part)
     face_keys.flush()

@@ -123,10 +123,6 @@ def _rss_mb(who) -> float:
     return resource.getrusage(who).ru_maxrss / 1024.0
 
 
-def _peak_rss_mb() -> float:
-    return max(_rss_mb(resource.RUSAGE_SELF), _rss_mb(resource.RUSAGE_CHILDREN))
-
-
 # ---------------------------------------------------------------------------------------------- stages
 
 
@@ -378,9 +374,9 @@ def build_map(
         report.seconds["assemble"] = time.perf_counter() - t2
         write_config(settings, out_dir / "config.yaml")
         report.seconds["total"] = time.perf_counter() - clock
-        report.peak_rss_mb = _peak_rss_mb()
         report.peak_rss_main_mb = _rss_mb(resource.RUSAGE_SELF)
         report.peak_rss_tile_jobs_mb = _rss_mb(resource.RUSAGE_CHILDREN)
+        report.peak_rss_mb = max(report.peak_rss_main_mb, report.peak_rss_tile_jobs_mb)
         (out_dir / "report.json").write_text(json.dumps(report.__dict__, indent=2, default=_jsonable))
         return report
     finally:
