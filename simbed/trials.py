@@ -31,6 +31,7 @@ import numpy as np
 
 from rangemcl.errors import InputError
 from rangemcl.models import MODEL_NAMES
+from rangemcl.pool import process_pool
 
 SUITES = ("particles", "sensors", "models", "kidnap", "runtime")
 PAPER_SENSORS = {  # the paper's Carla figures (location RMSE m, yaw RMSE deg), ../shared/SENSORS.md
@@ -353,9 +354,7 @@ def _ensure_drives(trials: list[Trial], drives_dir: Path, device: str, workers: 
         say(f"  drive {key}")
     if workers <= 1 or len(first) <= 1:
         return {k: ensure_drive(t, drives_dir, device) for k, t in first.items()}
-    from concurrent.futures import ProcessPoolExecutor
-
-    with ProcessPoolExecutor(min(workers, len(first))) as pool:
+    with process_pool(min(workers, len(first))) as pool:
         futures = {k: pool.submit(ensure_drive, t, drives_dir, device) for k, t in first.items()}
         return {k: f.result() for k, f in futures.items()}
 
@@ -393,9 +392,9 @@ def _execute(jobs, workers: int, backend: str, address: str | None):
         for j in jobs:
             yield _trial_job(j)
         return
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures import as_completed
 
-    with ProcessPoolExecutor(workers) as pool:
+    with process_pool(workers) as pool:
         futures = [pool.submit(_trial_job, j) for j in jobs]
         for f in as_completed(futures):
             yield f.result()

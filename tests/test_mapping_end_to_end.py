@@ -132,3 +132,50 @@ def test_cli_one_line_errors(tmp_path):
         timeout=120,
     )
     assert out.returncode == 2 and "poisson.dept" in out.stderr and "depth" in out.stderr
+
+
+def test_sigterm_removes_the_work_folder_and_stops_the_workers(drive, tmp_path):
+    """`kill` (SIGTERM) during the tile stage: build-map exits within seconds, leaves no temporary folder,
+    no worker behind and no map folder."""
+    import os
+    import signal
+    import time
+
+    _, seq, _ = drive
+    work = tmp_path / "tmp"
+    work.mkdir()
+    code = "import sys; from rangemcl.cli import main; sys.argv[0] = 'rangemcl'; main()"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code, "build-map", str(seq), "--out", str(tmp_path / "m")],
+        env={**os.environ, "TMPDIR": str(work)},
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+    def children() -> set[int]:
+        try:
+            text = open(f"/proc/{proc.pid}/task/{proc.pid}/children").read()
+        except OSError:
+            return set()
+        return {int(p) for p in text.split()}
+
+    deadline = time.monotonic() + 120
+    while len(children()) < 2 and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)  # the tile workers (and multiprocessing's resource tracker) have started
+    workers = children()
+    assert proc.poll() is None and len(workers) >= 2 and list(work.glob("rangemcl-map-*"))
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode != 0
+    assert not list(work.iterdir()), err
+    assert not (tmp_path / "m" / "mesh.ply").exists()
+    time.sleep(0.5)
+    assert not [p for p in workers if os.path.exists(f"/proc/{p}") and "zombie" not in _state(p)]
+
+
+def _state(pid: int) -> str:
+    try:
+        return open(f"/proc/{pid}/status").read().lower()
+    except OSError:
+        return "zombie"

@@ -10,14 +10,12 @@ effective config and a report.
 from __future__ import annotations
 
 import json
-import multiprocessing
 import os
 import resource
 import shutil
 import tempfile
 import time
 from collections import defaultdict
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,6 +30,7 @@ from rangemcl.mapping.meshmap import thin_path
 from rangemcl.mapping.normals import scan_normals
 from rangemcl.mapping.poisson import poisson_mesh, transfer_labels
 from rangemcl.mapping.simplify import simplify_ground
+from rangemcl.pool import process_pool
 from rangemcl.rangeimage import RangeImageGeometry
 from rangemcl.sensors import spec_from_dict
 from rangemcl.transforms import interpolate_poses
@@ -342,8 +341,7 @@ def build_map(
             stats = [build_tile(j) for j in _progress(jobs, progress, "tiles")]
         else:
             # spawned workers: each one's peak memory is its own (a forked one counts the parent's pages)
-            spawn = multiprocessing.get_context("spawn")
-            with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=spawn) as pool:
+            with process_pool(min(workers, len(jobs)), "spawn") as pool:
                 stats = list(_progress(pool.map(build_tile, jobs), progress, "tiles", total=len(jobs)))
         report.seconds["tiles"] = time.perf_counter() - t1
         report.tile_stats = stats

@@ -1,0 +1,41 @@
+"""The process pool used by build-map and the trial suites: results as a plain pool gives them, and an
+interrupted block stops its workers at once instead of waiting for their jobs."""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import time
+
+import pytest
+
+from rangemcl.pool import process_pool
+
+
+def _square(x: int) -> int:
+    return x * x
+
+
+def _pid_then_sleep(seconds: float) -> int:
+    time.sleep(seconds)
+    return os.getpid()
+
+
+@pytest.mark.parametrize("context", [None, "spawn"])
+def test_results_in_order(context):
+    with process_pool(2, context) as pool:
+        assert list(pool.map(_square, range(7))) == [x * x for x in range(7)]
+    assert not multiprocessing.active_children()
+
+
+def test_interrupt_terminates_running_workers():
+    before = set(multiprocessing.active_children())
+    clock = time.perf_counter()
+    with pytest.raises(KeyboardInterrupt):
+        with process_pool(2) as pool:
+            futures = [pool.submit(_pid_then_sleep, 60) for _ in range(6)]
+            time.sleep(1.0)  # both workers are inside a 60 s job
+            raise KeyboardInterrupt
+    assert time.perf_counter() - clock < 20  # a plain executor would wait about 3 x 60 s
+    assert set(multiprocessing.active_children()) <= before
+    assert all(f.cancelled() or f.done() for f in futures)
