@@ -75,7 +75,10 @@ class MotionSettings:
 class ObservationSettings:
     model: str = "range"  # range (paper Eq. 5) | overlap | likelihood_field | histogram (rangemcl.models)
     sigma_m: float = 0.25  # σ_d of Eq. 5 (paper 5.0, reference code 2.0; chosen by measurement, README)
-    rays: int = 500  # measured points cast per particle (a random subset of the valid ones)
+    rays: int = 500  # measured points cast per particle (a random subset of the valid ones) ...
+    ray_sampling: str = "points"  # ... each valid point alike (points) or each elevation band alike
+    # (elevation: 2-degree bands of the sensor's vertical field, so that a sensor whose beams crowd the
+    # road near the car still sends rays to what lies farther and higher)
     margin_m: float = 2.0  # rays end at measured range + margin; a miss counts as the margin
     cap_m: float | None = 1.0  # residual cap (the robust variant); None: the paper's plain mean
     min_range_m: float = 2.0  # ignore returns this close (the car itself)
@@ -200,6 +203,10 @@ class LocalizerSettings:
             raise InputError(
                 f"{where}: observation.model {o.model!r}: expected one of {', '.join(MODEL_NAMES)}"
             )
+        if o.ray_sampling not in ("points", "elevation"):
+            raise InputError(
+                f"{where}: observation.ray_sampling {o.ray_sampling!r}: expected 'points' or 'elevation'"
+            )
         if o.min_range_m >= o.max_range_m:
             raise InputError(f"{where}: observation.min_range_m must be below observation.max_range_m")
 
@@ -252,6 +259,9 @@ class ScanRays:
     valid_points: int  # valid points in the scan before subsampling
 
 
+ELEVATION_BAND_DEG = 2.0  # observation.ray_sampling "elevation": the bands sampled alike
+
+
 def prepare_rays(
     points: np.ndarray,
     settings: ObservationSettings,
@@ -276,7 +286,14 @@ def prepare_rays(
     if len(idx) == 0:
         return None
     if len(idx) > settings.rays:
-        idx = np.sort(rng.choice(idx, settings.rays, replace=False))  # sweep order: rays stay coherent
+        weight = None
+        if settings.ray_sampling == "elevation":
+            band = np.floor(np.degrees(np.arcsin(p[idx, 2] / r[idx])) / ELEVATION_BAND_DEG).astype(np.int64)
+            _, inverse, counts = np.unique(band, return_inverse=True, return_counts=True)
+            weight = 1.0 / counts[inverse]
+            weight /= weight.sum()
+        # sorted: the rays keep sweep order, which keeps them coherent in memory
+        idx = np.sort(rng.choice(idx, settings.rays, replace=False, p=weight))
     q = p[idx]
     if (
         settings.deskew

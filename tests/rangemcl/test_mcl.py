@@ -206,6 +206,33 @@ def test_prepare_rays_levels_with_roll_and_pitch_and_filters():
     assert prepare_rays(np.zeros((0, 3), np.float32), settings, rng) is None
 
 
+def test_ray_sampling_by_elevation_gives_each_band_its_share():
+    """A scan whose points crowd one elevation (the road near the car): 'points' picks rays in proportion,
+    'elevation' about the same number from each 2-degree band."""
+    rng = np.random.default_rng(7)
+    elev = np.concatenate([np.full(9000, -20.0), np.repeat(np.arange(-15.0, 5.0, 2.0), 100)])
+    elev += rng.uniform(0.1, 1.9, len(elev))  # within each band
+    az = rng.uniform(-np.pi, np.pi, len(elev))
+    e = np.radians(elev)
+    pts = (np.column_stack([np.cos(e) * np.cos(az), np.cos(e) * np.sin(az), np.sin(e)]) * 10.0).astype(
+        np.float32
+    )
+    for sampling, crowded in (("points", (0.85, 0.95)), ("elevation", (0.05, 0.15))):
+        o = ObservationSettings(rays=550, ray_sampling=sampling, min_range_m=0.0, max_range_m=100.0)
+        rays = prepare_rays(pts, o, np.random.default_rng(1))
+        band = np.floor(np.degrees(np.arcsin(rays.directions[:, 2])) / 2.0)
+        _, counts = np.unique(band, return_counts=True)
+        assert len(np.unique(rays.directions, axis=0)) == 550  # 550 distinct points
+        share = np.mean(band == -10)  # the crowded band, -20..-18 degrees
+        assert crowded[0] < share < crowded[1], (sampling, share)
+        if sampling == "elevation":
+            assert counts.min() >= 25 and counts.max() <= 75  # 11 bands, 50 each on average
+    with pytest.raises(InputError, match="ray_sampling"):
+        s = LocalizerSettings()
+        s.observation.ray_sampling = "beams"
+        s.check()
+
+
 def test_scan_without_valid_points_only_predicts(world):
     _, caster, m, path, _ = world
     loc = MonteCarloLocalizer(m, small_settings(), seed=0, caster=caster)
