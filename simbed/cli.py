@@ -166,14 +166,19 @@ def trials(
     backend: str = typer.Option("process", help="process (local pool) or ray."),
     address: str = typer.Option(None, help="Ray cluster address (backend ray; default: a local instance)."),
     device: str = typer.Option("cpu", help="Warp device: cpu or cuda."),
+    config: Path = typer.Option(
+        None,
+        help="Localizer settings YAML for every trial (as rangemcl localize --config; the suite still sets "
+        "the observation model and particle count). Trial keys get a tag of these settings.",
+    ),
     report_only: bool = typer.Option(
         False, help="Run nothing: write the table and figure from the trials already in results.csv."
     ),
 ) -> None:
     """Run (or continue) one of the paper's experiments as a suite of localization trials."""
-    from simbed.trials import SuiteConfig, run_suite
+    from simbed.trials import SuiteConfig, run_suite, suite_settings
 
-    config = SuiteConfig(
+    suite_config = SuiteConfig(
         scene=scene,
         route=route,
         variant=variant,
@@ -185,13 +190,14 @@ def trials(
         particle_counts=None if counts is None else _int_list(counts, "--counts"),
         models=None if models is None else tuple(m.strip() for m in models.split(",") if m.strip()),
         sensors=None if sensors is None else tuple(m.strip() for m in sensors.split(",") if m.strip()),
+        settings="" if config is None else suite_settings(config),
     )
     rows = run_suite(
         suite,
         out,
         map_dir,
         quick=quick,
-        config=config,
+        config=suite_config,
         workers=workers,
         backend=backend,
         address=address,

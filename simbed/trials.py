@@ -21,6 +21,7 @@ on a Ray cluster (``backend="ray"``). Each suite writes ``OUT/SUITE.md`` (a mark
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
 import os
 import time
@@ -59,12 +60,13 @@ class Trial:
     model: str
     seed: int
     kidnap: bool = False
+    settings: str = ""  # localizer settings the suite was given (canonical JSON; "" = the defaults)
 
     @property
     def key(self) -> str:
         return (
             f"{self.suite}-{self.drive_key}-s{self.start_frame}-f{self.frames}-p{self.particles}-{self.model}"
-            f"-r{self.seed}{'-kidnap' if self.kidnap else ''}"
+            f"-r{self.seed}{'-kidnap' if self.kidnap else ''}{settings_tag(self.settings)}"
         )
 
     @property
@@ -89,6 +91,27 @@ class SuiteConfig:
     particle_counts: tuple[int, ...] | None = None  # suite 'particles' (default 1k, 5k, 10k, 50k, 100k)
     models: tuple[str, ...] | None = None  # suites 'particles' and 'models' (default: all four)
     sensors: tuple[str, ...] | None = None  # suite 'sensors' (default: the paper's five presets)
+    settings: str = ""  # localizer settings for every trial (canonical JSON, see suite_settings)
+
+
+def suite_settings(path) -> str:
+    """Localizer settings from a YAML file (as ``rangemcl localize --config`` takes) for ``SuiteConfig``:
+    checked now (an InputError names the file and the key), kept as canonical JSON. The suite still sets
+    each trial's observation model and particle count."""
+    from rangemcl.config import from_dict
+    from rangemcl.mcl import LocalizerSettings
+    from rangemcl.yamlio import parse_yaml, read_text
+
+    data = parse_yaml(read_text(path, "localizer settings"), str(path)) or {}
+    from_dict(LocalizerSettings, data, str(path)).check(str(path))
+    return json.dumps(data, sort_keys=True, separators=(",", ":"))
+
+
+def settings_tag(settings: str) -> str:
+    """The suffix that trial keys get for non-default settings: ``-c`` and 8 hex digits of their hash."""
+    if not settings or settings == "{}":
+        return ""
+    return "-c" + hashlib.sha1(settings.encode()).hexdigest()[:8]
 
 
 def suite_trials(suite: str, quick: bool = False, config: SuiteConfig | None = None) -> list[Trial]:
@@ -133,6 +156,7 @@ def suite_trials(suite: str, quick: bool = False, config: SuiteConfig | None = N
                     model,
                     seed0 + k,
                     kidnap,
+                    c.settings,
                 )
             )
         return out
@@ -193,7 +217,12 @@ def run_trial(
     from rangemcl.mcl import LocalizerSettings
 
     out = trials_dir / trial.key
-    settings = LocalizerSettings()
+    if trial.settings:
+        from rangemcl.config import from_dict
+
+        settings = from_dict(LocalizerSettings, json.loads(trial.settings), "suite settings")
+    else:
+        settings = LocalizerSettings()
     settings.observation.model = trial.model
     settings.particles.global_count = trial.particles
     n = len(load_sequence(drive))
@@ -261,7 +290,9 @@ def _trial_job(args) -> dict:
     return run_trial(trial, drive, map_dir, trials_dir, threads, device)
 
 
-ROW_FIELDS = [f.name for f in fields(Trial)] + [
+# results.csv columns: the settings themselves stay out (the key's tag names them; each trial's folder
+# has its config.yaml)
+ROW_FIELDS = [f.name for f in fields(Trial) if f.name != "settings"] + [
     "key",
     "success",
     "frames_to_converge",

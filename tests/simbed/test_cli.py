@@ -124,3 +124,17 @@ def test_make_town_writes_a_loadable_town(tmp_path):
     world = World(out)
     assert world.town is not None and len(world.town.edges) >= len(world.town.nodes)
     one_line_error(simbed("make-town", "--size", "-5", "--out", str(tmp_path / "t.xml")), "size")
+
+
+def test_trials_bad_localizer_settings(tmp_path):
+    cfg = tmp_path / "loc.yaml"
+    cfg.write_text("observation:\n  ray_sampling: beams\n")
+    r = simbed(
+        "trials", "runtime", "--out", str(tmp_path / "s"), "--map", str(tmp_path), "--config", str(cfg)
+    )
+    one_line_error(r, "loc.yaml", "ray_sampling", "beams")
+    r = simbed(
+        "trials", "runtime", "--out", str(tmp_path / "s"), "--map", str(tmp_path), "--config", "nope.yaml"
+    )
+    one_line_error(r, "nope.yaml")
+    assert not (tmp_path / "s").exists()

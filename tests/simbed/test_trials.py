@@ -4,11 +4,13 @@ resumable, and runs on a local Ray instance; trial lists by their definitions.""
 from __future__ import annotations
 
 import csv
+import re
+from dataclasses import replace
 
 import pytest
 
 from rangemcl.errors import InputError
-from simbed.trials import SUITES, SuiteConfig, aggregate, run_suite, suite_trials
+from simbed.trials import SUITES, SuiteConfig, aggregate, run_suite, suite_settings, suite_trials
 
 CONFIG = SuiteConfig(route="mapping", drive_frames=50, frames=30, actors=2, starts=2)
 
@@ -137,3 +139,27 @@ def test_aggregate_weights_rmse_by_frames():
     assert a["trials"] == 3 and a["successes"] == 2
     assert a["location_rmse_m"] == pytest.approx(((100 * 0.01 + 300 * 0.09) / 400) ** 0.5)
     assert a["frames_to_converge_median"] == 15 and a["seconds_before_median"] == 3
+
+
+def test_suite_with_localizer_settings(tiny_map, tmp_path):
+    """--config: every trial runs with the file's settings, and its key says so (runs with other settings
+    never count as done); a bad file is one clear error naming the file and the key."""
+    cfg = tmp_path / "elev.yaml"
+    cfg.write_text("observation:\n  ray_sampling: elevation\n  rays: 120\n")
+    c = replace(CONFIG, settings=suite_settings(cfg))
+    plain, tuned = suite_trials("runtime", True, CONFIG), suite_trials("runtime", True, c)
+    assert all(
+        re.fullmatch(re.escape(a.key) + "-c[0-9a-f]{8}", b.key) for a, b in zip(plain, tuned, strict=True)
+    )
+    assert all(not a.key.rsplit("-", 1)[1].startswith("c") for a in plain)  # default keys unchanged
+    out = tmp_path / "rt"
+    rows = run_suite("runtime", out, tiny_map, quick=True, config=c, workers=1, say=lambda _: None)
+    assert [r["key"] for r in rows] == [t.key for t in tuned]
+    used = (out / "trials" / tuned[0].key / "config.yaml").read_text()
+    assert "ray_sampling: elevation" in used and "rays: 120" in used and "model: range" in used
+    with open(out / "results.csv") as fh:
+        assert "settings" not in next(csv.reader(fh))  # the columns stay those of a default run
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("observation:\n  ray_samplin: elevation\n")
+    with pytest.raises(InputError, match=r"bad\.yaml.*ray_samplin"):
+        suite_settings(bad)
