@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 
 import numpy as np
 
@@ -39,6 +40,7 @@ def main() -> None:
 
     from rangemcl.config import load_config
     from rangemcl.dataset import load_sequence
+    from rangemcl.errors import InputError
     from rangemcl.evaluate import xyyaw_of
     from rangemcl.localize import _frame_period, _sensor_height, odometry_xyyaw
     from rangemcl.mapping.meshmap import MeshMap
@@ -62,7 +64,7 @@ def main() -> None:
     )
     for f in frames:
         if not 0 <= f < len(seq):
-            raise SystemExit(f"probe_residuals: frame {f} is outside the sequence (0..{len(seq) - 1})")
+            raise InputError(f"{a.seq}: frame {f} is outside the sequence (0..{len(seq) - 1})")
         truth = truths[f]
         # the scan as the localizer prepares it: de-skewed with the frame's odometry, levelled by the IMU
         rays = prepare_rays(
@@ -98,4 +100,10 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from rangemcl.errors import InputError
+
+    try:
+        main()
+    except InputError as err:  # a missing or malformed sequence, map or config: one line, status 2
+        print(f"probe_residuals: error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
