@@ -7,6 +7,7 @@ import json
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -155,7 +156,7 @@ def test_sigterm_removes_the_work_folder_and_stops_the_workers(drive, tmp_path):
 
     def children() -> set[int]:
         try:
-            text = open(f"/proc/{proc.pid}/task/{proc.pid}/children").read()
+            text = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text()
         except OSError:
             return set()
         return {int(p) for p in text.split()}

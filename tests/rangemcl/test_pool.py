@@ -31,11 +31,10 @@ def test_results_in_order(context):
 def test_interrupt_terminates_running_workers():
     before = set(multiprocessing.active_children())
     clock = time.perf_counter()
-    with pytest.raises(KeyboardInterrupt):
-        with process_pool(2) as pool:
-            futures = [pool.submit(_pid_then_sleep, 60) for _ in range(6)]
-            time.sleep(1.0)  # both workers are inside a 60 s job
-            raise KeyboardInterrupt
+    with pytest.raises(KeyboardInterrupt), process_pool(2) as pool:
+        futures = [pool.submit(_pid_then_sleep, 60) for _ in range(6)]
+        time.sleep(1.0)  # both workers are inside a 60 s job
+        raise KeyboardInterrupt
     assert time.perf_counter() - clock < 20  # a plain executor would wait about 3 x 60 s
     assert set(multiprocessing.active_children()) <= before
     assert all(f.cancelled() or f.done() for f in futures)
