@@ -456,6 +456,7 @@ def aggregate(rows: list[dict], by: list[str]) -> list[dict]:
         groups.items(), key=lambda kv: [(_num(v) if _num(v) == _num(v) else v) for v in kv[0]]
     ):
         good = [r for r in rs if _truthy(r["success"])]
+        converged = [r for r in rs if r["frames_to_converge"] not in ("", None)]
         w = np.array([_num(r["frames_after_convergence"]) for r in good])
         loc = np.array([_num(r["location_rmse_m"]) for r in good])
         yaw = np.array([_num(r["yaw_rmse_deg"]) for r in good])
@@ -475,6 +476,10 @@ def aggregate(rows: list[dict], by: list[str]) -> list[dict]:
                 **dict(zip(by, key, strict=True)),
                 "trials": len(rs),
                 "successes": len(good),
+                # the two ways a trial fails: no convergence within its frames, or a convergence that was
+                # wrong (> 5 m off at convergence or at a later check, a false alarm's re-spread included)
+                "not_converged": len(rs) - len(converged),
+                "converged_failed": len(converged) - sum(_truthy(r["success"]) for r in converged),
                 "location_rmse_m": float(np.sqrt(np.sum(w * loc**2) / w.sum()))
                 if len(good) and w.sum() > 0
                 else None,
@@ -523,12 +528,16 @@ def write_report(suite: str, rows: list[dict], out: Path) -> tuple[Path, Path]:
         "",
         f"{len(rows)} trials; RMSE over the frames after convergence of "
         "the successful trials; success = location error < 5 m at every 100th frame after convergence; "
-        "location_median_m = median over the successful trials of each one's median error after convergence.",
+        "location_median_m = median over the successful trials of each one's median error after convergence; "
+        "the failures split into not_converged (no convergence within the trial) and converged_failed "
+        "(converged, but more than 5 m off then or at a later check).",
         "",
     ]
     cols = [*by, "trials", "successes", "location_rmse_m", "yaw_rmse_deg", "frames_to_converge_median"]
     if suite in ("sensors", "particles"):
         cols.insert(cols.index("yaw_rmse_deg"), "location_median_m")
+        at = cols.index("successes") + 1
+        cols[at:at] = ["not_converged", "converged_failed"]
     if suite == "models":
         cols += ["location_rmse_mean_m", "location_rmse_std_m", "yaw_rmse_mean_deg", "yaw_rmse_std_deg"]
     if suite == "sensors":

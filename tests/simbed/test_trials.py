@@ -69,6 +69,7 @@ def test_quick_suite_writes_results_table_and_figure_and_resumes(tiny_map, tmp_p
     assert all(float(r["location_rmse_m"]) < 0.5 for r in rows)
     table = (out / "sensors.md").read_text()
     assert "| sensor |" in table and "vlp-16" in table and "paper_location_rmse_m" in table
+    assert "| not_converged | converged_failed |" in table and "| vlp-16 | 1 | 1 | 0 | 0 |" in table
     assert (out / "sensors.png").stat().st_size > 1000
     again: list[str] = []
     rows2 = run_suite("sensors", out, tiny_map, quick=True, config=CONFIG, workers=2, say=again.append)
@@ -135,8 +136,11 @@ def test_aggregate_weights_rmse_by_frames():
             "seconds_per_frame_before": "4",
         },
     ]
+    # converged to a wrong place: counted as a failure, its convergence and cost still in the medians
+    rows.append({**rows[0], "success": "False", "frames_to_converge": "15", "seconds_per_frame_before": "3"})
     (a,) = aggregate(rows, ["model"])
-    assert a["trials"] == 3 and a["successes"] == 2
+    assert a["trials"] == 4 and a["successes"] == 2
+    assert a["not_converged"] == 1 and a["converged_failed"] == 1
     assert a["location_rmse_m"] == pytest.approx(((100 * 0.01 + 300 * 0.09) / 400) ** 0.5)
     assert a["frames_to_converge_median"] == 15 and a["seconds_before_median"] == 3
 
