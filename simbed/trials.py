@@ -476,8 +476,8 @@ def aggregate(rows: list[dict], by: list[str]) -> list[dict]:
                 **dict(zip(by, key, strict=True)),
                 "trials": len(rs),
                 "successes": len(good),
-                # the two ways a trial fails: no convergence within its frames, or a convergence that was
-                # wrong (> 5 m off at convergence or at a later check, a false alarm's re-spread included)
+                # the two ways a trial fails: not converged at its end (never, or re-spread after a "lost"
+                # alarm and not converged again), or its last convergence > 5 m off then or at a later check
                 "not_converged": len(rs) - len(converged),
                 "converged_failed": len(converged) - sum(_truthy(r["success"]) for r in converged),
                 "location_rmse_m": float(np.sqrt(np.sum(w * loc**2) / w.sum()))
@@ -529,8 +529,9 @@ def write_report(suite: str, rows: list[dict], out: Path) -> tuple[Path, Path]:
         f"{len(rows)} trials; RMSE over the frames after convergence of "
         "the successful trials; success = location error < 5 m at every 100th frame after convergence; "
         "location_median_m = median over the successful trials of each one's median error after convergence; "
-        "the failures split into not_converged (no convergence within the trial) and converged_failed "
-        "(converged, but more than 5 m off then or at a later check).",
+        "the failures split into not_converged (not converged at the trial's end: never, or re-spread "
+        "after a 'lost' alarm and not converged again) and converged_failed (its last convergence more than "
+        "5 m off then or at a later check).",
         "",
     ]
     cols = [*by, "trials", "successes", "location_rmse_m", "yaw_rmse_deg", "frames_to_converge_median"]
