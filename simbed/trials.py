@@ -461,7 +461,7 @@ def aggregate(rows: list[dict], by: list[str]) -> list[dict]:
         loc = np.array([_num(r["location_rmse_m"]) for r in good])
         yaw = np.array([_num(r["yaw_rmse_deg"]) for r in good])
         med = [_num(r["location_median_m"]) for r in good if r.get("location_median_m") not in ("", None)]
-        conv = [_num(r["frames_to_converge"]) for r in rs if r["frames_to_converge"] not in ("", None)]
+        conv = [_num(r["frames_to_converge"]) for r in converged]
         hz = [_num(r["hz_after"]) for r in rs if r["hz_after"] not in ("", None)]
         before = [
             _num(r["seconds_per_frame_before"]) for r in rs if r["seconds_per_frame_before"] not in ("", None)
@@ -479,7 +479,7 @@ def aggregate(rows: list[dict], by: list[str]) -> list[dict]:
                 # the two ways a trial fails: not converged at its end (never, or re-spread after a "lost"
                 # alarm and not converged again), or its last convergence > 5 m off then or at a later check
                 "not_converged": len(rs) - len(converged),
-                "converged_failed": len(converged) - sum(_truthy(r["success"]) for r in converged),
+                "converged_failed": len(converged) - len(good),  # a success has always converged
                 "location_rmse_m": float(np.sqrt(np.sum(w * loc**2) / w.sum()))
                 if len(good) and w.sum() > 0
                 else None,
