@@ -2,10 +2,10 @@
 
 ``concurrent.futures.ProcessPoolExecutor`` used as a context manager waits for every submitted job when the
 block raises: a ``rangemcl build-map`` or ``simbed trials`` stopped by Ctrl-C or SIGTERM would go on
-computing (or leave orphaned workers) instead of cleaning up and exiting. :func:`process_pool` cancels the
-jobs not started and terminates the running workers on any exception (``KeyboardInterrupt`` included),
-and otherwise shuts the pool down normally. It stays a ``ProcessPoolExecutor``, so a worker that dies
-(killed for memory, say) still raises ``BrokenProcessPool`` rather than hanging.
+computing (or leave orphaned workers) instead of cleaning up and exiting. :func:`process_pool` terminates
+the running workers on any exception (``KeyboardInterrupt`` included; the jobs not finished end with
+``BrokenProcessPool``) and otherwise shuts the pool down normally. It stays a ``ProcessPoolExecutor``, so a
+worker that dies (killed for memory, say) still raises ``BrokenProcessPool`` rather than hanging.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ import signal
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
+from multiprocessing.connection import wait
 
 
 @contextmanager
@@ -27,15 +28,20 @@ def process_pool(workers: int, context: str | None = None) -> Iterator[ProcessPo
     try:
         yield pool
     except BaseException:
-        pool.shutdown(wait=False, cancel_futures=True)
         mine = [p for p in multiprocessing.active_children() if p not in before]
         for p in mine:
             p.terminate()
+        # wait for the exits on the sentinels, not with join(): the pool's manager thread, seeing its
+        # workers die, reaps them itself, and two threads reaping one child leave it listed as running
         for p in mine:
-            p.join(timeout=10)
-            if p.is_alive():
+            if not wait([p.sentinel], timeout=10):
                 p.kill()
-                p.join()
+                wait([p.sentinel])
+        # the manager thread fails the pending jobs (BrokenProcessPool), reaps the workers and ends;
+        # shutdown waits for it (a first shutdown(wait=False) would forget the thread and not wait)
+        pool.shutdown(wait=True, cancel_futures=True)
+        for p in mine:
+            p.join()  # children started in the block that were not the pool's own
         raise
     pool.shutdown(wait=True)
 
