@@ -71,10 +71,15 @@ class Trial:
 
     @property
     def drive_key(self) -> str:
-        return (
-            f"{self.scene}-{self.sensor}-{self.route}-v{self.variant}-a{self.actors}-d{self.drive_seed}"
-            f"-n{self.drive_frames}"
-        )
+        return drive_key(*(getattr(self, k) for k in DRIVE_FIELDS))
+
+
+DRIVE_FIELDS = ("scene", "sensor", "route", "variant", "actors", "drive_seed", "drive_frames")
+
+
+def drive_key(scene, sensor, route, variant, actors, drive_seed, drive_frames) -> str:
+    """A test drive's folder name under ``OUT/drives`` (from a Trial, or a results.csv row's fields)."""
+    return f"{scene}-{sensor}-{route}-v{variant}-a{actors}-d{drive_seed}-n{drive_frames}"
 
 
 @dataclass

@@ -22,19 +22,17 @@ from pathlib import Path
 
 import numpy as np
 
+from rangemcl.dataset import read_poses_txt
+from rangemcl.errors import InputError
+from simbed.trials import DRIVE_FIELDS, drive_key
+
 FAR_M = 60.0  # a wrong convergence this far off is another street, not a settling filter
 NEAR_M = 5.0  # the suites' success radius
 
 
-def _drive_key(r: dict) -> str:
-    return (
-        f"{r['scene']}-{r['sensor']}-{r['route']}-v{r['variant']}-a{r['actors']}-d{r['drive_seed']}"
-        f"-n{r['drive_frames']}"
-    )
-
-
 def alarm_errors(trial_dir: Path, truth: np.ndarray) -> list[float]:
-    """Location error 5 frames before each re-spread of one trial (its frames.csv, absolute frame ids)."""
+    """Location error 5 frames before each re-spread of one trial (its frames.csv, absolute frame ids;
+    ``truth``: the drive's (N, 4, 4) poses)."""
     with (trial_dir / "frames.csv").open() as fh:
         rows = list(csv.DictReader(fh))
     out = []
@@ -80,13 +78,12 @@ def main() -> None:
         ]
         alarms: list[float] = []
         for r in rs:
-            key = _drive_key(r)
+            key = drive_key(*(r[k] for k in DRIVE_FIELDS))
             if key not in truths:
-                poses = a.suite_dir / "drives" / key / "poses.txt"
                 try:
-                    truths[key] = np.loadtxt(poses).reshape(-1, 3, 4)
-                except (OSError, ValueError) as err:
-                    fail(f"{poses}: cannot read the drive's true poses ({err})")
+                    truths[key] = read_poses_txt(a.suite_dir / "drives" / key / "poses.txt")
+                except InputError as err:
+                    fail(str(err))
             trial = a.suite_dir / "trials" / r["key"]
             if not (trial / "frames.csv").is_file():
                 fail(f"{trial / 'frames.csv'}: missing (the trial's folder was removed?)")
