@@ -297,11 +297,18 @@ def localize(
 
 
 def _metrics_line(m: dict) -> str:
+    events = ""
+    if "wrong_convergences_count" in m:
+        events = (
+            f"; wrong convergences {m['wrong_convergences_count']} "
+            f"(not caught within {m.get('caught_within_frames', 10)} frames: "
+            f"{m.get('wrong_convergences_uncaught', 0)}), false alarms {m.get('false_alarms_count', 0)}"
+        )
     if m.get("location_rmse_m") is None:
-        return "  metrics: not converged (failure)"
+        return "  metrics: not converged (failure)" + events
     return (
         f"  metrics: {'success' if m['success'] else 'FAILURE'}, location RMSE {m['location_rmse_m']:.3f} m, "
-        f"yaw RMSE {m['yaw_rmse_deg']:.2f} deg, converged at frame {m['converged_frame']}"
+        f"yaw RMSE {m['yaw_rmse_deg']:.2f} deg, converged at frame {m['converged_frame']}" + events
     )
 
 
@@ -322,7 +329,18 @@ def evaluate(
     atomic_write(results / "metrics.json", json.dumps(m, indent=2) + "\n")
     typer.echo(
         json.dumps(
-            {k: m[k] for k in ("success", "location_rmse_m", "yaw_rmse_deg", "converged_frame", "frames")}
+            {
+                k: m[k]
+                for k in (
+                    "success",
+                    "location_rmse_m",
+                    "yaw_rmse_deg",
+                    "converged_frame",
+                    "frames",
+                    "wrong_convergences_count",
+                    "false_alarms_count",
+                )
+            }
         )
     )
     typer.echo(_metrics_line(m))

@@ -4,6 +4,11 @@
   frame itself, then every 100th frame after it), and the filter converged at all.
 * **Location RMSE** over (x, y) and **yaw RMSE** in degrees, over the frames from convergence on.
 * **Frames to converge**: from the first frame of the run.
+* **Wrong convergences** (given the frames where the filter declared convergence): declared while more
+  than ``success_m`` off, each with its frame, its error and the frame of the re-spread that undid it
+  (``caught_frame``, None if none did); a run with one is reported as such even if it recovers.
+* **False alarms** (given the frames where the filter declared itself lost): declared while the estimate
+  it gave up was within ``false_alarm_m`` (2 m) of the truth.
 """
 
 from __future__ import annotations
@@ -37,10 +42,24 @@ def localization_metrics(
     *,
     check_every: int = 100,
     success_m: float = 5.0,
+    convergence_frames: list[int] | None = None,
+    recovery_frames: list[int] | None = None,
+    false_alarm_m: float = 2.0,
+    caught_within: int = 10,
 ) -> dict:
-    """The metrics of the module docstring as a JSON-ready dict (NaN-free: missing values are None)."""
+    """The metrics of the module docstring as a JSON-ready dict (NaN-free: missing values are None).
+    Frame numbers (``converged_frame`` and the event lists) count from the first row of the arrays."""
     loc, yaw = pose_errors(estimate_xyyaw, truth_xyyaw)
     n = len(loc)
+    events = convergence_events(
+        loc, convergence_frames, recovery_frames, success_m=success_m, false_alarm_m=false_alarm_m
+    )
+    events["wrong_convergences_uncaught"] = sum(
+        1
+        for w in events["wrong_convergences"]
+        if w["caught_frame"] is None or w["caught_frame"] - w["frame"] > caught_within
+    )
+    events["caught_within_frames"] = caught_within
     out: dict = {
         "frames": n,
         "converged": converged_frame is not None,
@@ -48,6 +67,7 @@ def localization_metrics(
         "frames_to_converge": converged_frame,
         "success_threshold_m": success_m,
         "check_every": check_every,
+        **events,
     }
     if converged_frame is None or not 0 <= converged_frame < n:
         out.update(success=False, checked_frames=[], location_rmse_m=None, yaw_rmse_deg=None)
@@ -66,6 +86,46 @@ def localization_metrics(
         final_location_error_m=float(loc[-1]),
     )
     return out
+
+
+def convergence_events(
+    location_error_m: np.ndarray,
+    convergence_frames: list[int] | None,
+    recovery_frames: list[int] | None,
+    *,
+    success_m: float = 5.0,
+    false_alarm_m: float = 2.0,
+) -> dict:
+    """Wrong convergences and false alarms (module docstring) from the per-frame location errors and the
+    frames (indices into them) where convergence and "lost" were declared. A lost declaration judges the
+    estimate it gave up: the error at the frame before it."""
+    err = np.asarray(location_error_m, np.float64)
+    conv = sorted(int(f) for f in (convergence_frames or []) if 0 <= int(f) < len(err))
+    lost = sorted(int(f) for f in (recovery_frames or []) if 0 <= int(f) < len(err))
+    wrong = []
+    for f in conv:
+        if err[f] > success_m:
+            after = [r for r in lost if r > f]
+            caught = after[0] if after else None
+            wrong.append(
+                {
+                    "frame": f,
+                    "error_m": float(err[f]),
+                    "caught_frame": caught,
+                    "frames_to_catch": None if caught is None else caught - f,
+                }
+            )
+    alarms = [
+        {"frame": r, "error_m": float(err[max(r - 1, 0)])} for r in lost if err[max(r - 1, 0)] < false_alarm_m
+    ]
+    return {
+        "convergences": len(conv),
+        "wrong_convergences": wrong,
+        "wrong_convergences_count": len(wrong),
+        "recoveries": len(lost),
+        "false_alarms": alarms,
+        "false_alarms_count": len(alarms),
+    }
 
 
 def xyyaw_of(poses: np.ndarray) -> np.ndarray:
@@ -99,10 +159,27 @@ def evaluate_results(results_dir, gt_path, *, check_every: int = 100, success_m:
     conv = summary.get("converged_frame")
     conv = None if conv is None else int(conv) - first
     metrics = localization_metrics(
-        xyyaw_of(est_l), xyyaw_of(gt_l), conv, check_every=check_every, success_m=success_m
+        xyyaw_of(est_l),
+        xyyaw_of(gt_l),
+        conv,
+        check_every=check_every,
+        success_m=success_m,
+        convergence_frames=[int(f) - first for f in summary.get("convergence_frames", [])],
+        recovery_frames=[int(f) - first for f in summary.get("recovery_frames", [])],
     )
-    if metrics["converged_frame"] is not None:
-        metrics["converged_frame"] += first
+    shift_event_frames(metrics, first)
     metrics["first_frame"] = first
     metrics["ground_truth"] = str(gt_path)
     return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in metrics.items()}
+
+
+def shift_event_frames(metrics: dict, first: int) -> None:
+    """Frame numbers of a metrics dict from run-relative to the sequence's own."""
+    if metrics["converged_frame"] is not None:
+        metrics["converged_frame"] += first
+    for w in metrics["wrong_convergences"]:
+        w["frame"] += first
+        if w["caught_frame"] is not None:
+            w["caught_frame"] += first
+    for a in metrics["false_alarms"]:
+        a["frame"] += first

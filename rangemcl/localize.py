@@ -32,13 +32,13 @@ from rangemcl.atomic import atomic_write
 from rangemcl.config import write_config
 from rangemcl.dataset import Sequence, load_sequence, poses_to_tum, write_poses_txt
 from rangemcl.errors import InputError
-from rangemcl.evaluate import localization_metrics, xyyaw_of
+from rangemcl.evaluate import localization_metrics, shift_event_frames, xyyaw_of
 from rangemcl.mapping.meshmap import MeshMap
 from rangemcl.mcl import LocalizerSettings, MonteCarloLocalizer, rotation_roll_pitch, se2_between
 
 FRAME_COLUMNS = (
     "frame,time_s,x,y,yaw,particles,converged,updated,resampled,skipped_scan,recovered,"
-    "best_residual_m,seconds"
+    "best_residual_m,seconds,hypotheses,evidence_nats,inliers"
 )
 
 
@@ -169,6 +169,7 @@ def localize_sequence(
         skipped_scans=0,
         unreadable_scans=0,
         recovery_frames=[],
+        convergence_frames=[],
     )
     done = 0
     interrupted = False
@@ -205,6 +206,8 @@ def localize_sequence(
                 state["recoveries"] += 1
                 state["recovery_frames"].append(i)
                 state["converged_frame"] = None
+            if info.converged_now:
+                state["convergence_frames"].append(i)
             if info.converged and state["converged_frame"] is None:
                 state["converged_frame"] = i
                 snapshots[f"frame_{i:06d}_converged"] = loc.particles.copy()
@@ -212,7 +215,8 @@ def localize_sequence(
                 f"{i},{seq.times[i] if seq.times is not None else i * (period or 0.1):.6f},"
                 f"{est[k, 0]:.4f},{est[k, 1]:.4f},{est[k, 2]:.6f},{info.particles},{int(info.converged)},"
                 f"{int(info.updated)},{int(info.resampled)},{int(info.skipped_scan)},{int(info.recovered)},"
-                f"{info.best_residual_m:.4f},{info.seconds:.4f}\n"
+                f"{info.best_residual_m:.4f},{info.seconds:.4f},{info.hypotheses},{info.evidence_nats:.3f},"
+                f"{info.inliers:.3f}\n"
             )
             csv.flush()
             done = k + 1
@@ -252,6 +256,7 @@ def localize_sequence(
         "resamples": state["resamples"],
         "recoveries": state["recoveries"],
         "recovery_frames": state["recovery_frames"],
+        "convergence_frames": state["convergence_frames"],
         "skipped_scans": state["skipped_scans"],
         "unreadable_scans": state["unreadable_scans"],
         "odometry_source": odo_source,
@@ -267,17 +272,36 @@ def localize_sequence(
         else None,
         "calib_Tr": seq.calib_Tr.tolist(),
     }
+    if loc.prior is not None:
+        summary["place_prior"] = {
+            "source": loc.prior_source,
+            "cells": len(loc.prior.xy),
+            "megabytes": loc.prior.nbytes / 1e6,
+            "build_seconds": loc.prior.build_s,
+        }
     if truth is not None and done:
         conv = state["converged_frame"]
         metrics = localization_metrics(
-            est, truth[first : first + done], None if conv is None else conv - first
+            est,
+            truth[first : first + done],
+            None if conv is None else conv - first,
+            convergence_frames=[f - first for f in state["convergence_frames"]],
+            recovery_frames=[f - first for f in state["recovery_frames"]],
         )
-        if metrics["converged_frame"] is not None:
-            metrics["converged_frame"] += first
+        shift_event_frames(metrics, first)
         metrics["first_frame"] = first
         atomic_write(out_dir / "metrics.json", json.dumps(metrics, indent=2) + "\n")
         summary["metrics"] = {
-            k: metrics.get(k) for k in ("success", "location_rmse_m", "yaw_rmse_deg", "converged_frame")
+            k: metrics.get(k)
+            for k in (
+                "success",
+                "location_rmse_m",
+                "yaw_rmse_deg",
+                "converged_frame",
+                "wrong_convergences_count",
+                "wrong_convergences_uncaught",
+                "false_alarms_count",
+            )
         }
     atomic_write(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
     if opt.plots and done:

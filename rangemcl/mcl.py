@@ -29,6 +29,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rangemcl.errors import InputError
+from rangemcl.localization.hypotheses import (
+    ConvergenceTest,
+    cluster_labels,
+    kld_sample_size,
+    occupied_bins,
+    resample_by_cluster,
+    summarize,
+)
+from rangemcl.localization.place_prior import PlacePrior, PriorParams, load_or_build
 from rangemcl.mapping.meshmap import MeshMap
 from rangemcl.observation import ObservationModel
 from rangemcl.particles import (
@@ -81,6 +90,8 @@ class ObservationSettings:
     # road near the car still sends rays to what lies farther and higher)
     margin_m: float = 2.0  # rays end at measured range + margin; a miss counts as the margin
     cap_m: float | None = 1.0  # residual cap (the robust variant); None: the paper's plain mean
+    cap_beyond_m: float | None = 0.5  # cost of a ray measured more than cap_m longer than the map's
+    # surface (it passed where the map holds a removed object: weak evidence against the pose); None: cap_m
     min_range_m: float = 2.0  # ignore returns this close (the car itself)
     max_range_m: float = 40.0  # as far as the map builder meshes (its scans.max_range_m)
     deskew: bool = True  # with per-point firing times and odometry
@@ -96,14 +107,31 @@ class ObservationSettings:
 
 @dataclass
 class ConvergenceSettings:
-    tiles: int = 1  # N_conv: converged when all particles lie in this many tiles ...
+    method: str = "hypotheses"  # hypotheses (rangemcl.localization.hypotheses) | tiles (the paper's)
+    tiles: int = 1  # tiles: converged when all particles lie in this many tiles ...
     max_radius_m: float = 10.0  # ... and 95 % of them within this radius of the estimate;
-    compact_radius_m: float = 5.0  # a cloud this compact counts as converged across a tile border
+    compact_radius_m: float = 5.0  # a cloud this compact counts as converged across a tile border; also
+    # hypotheses: the winner's 95 % weight radius must be within this
+    cluster_m: float = 3.0  # hypotheses: particles in touching cells of this size form one cluster
+    margin_nats: float = 6.0  # ... the leader's log weight share must beat the best rival's by this
+    separation_m: float = 5.0  # (a rival: a cluster farther than this from the leader) ...
+    min_distance_m: float = 8.0  # ... having led over this much driving
+    min_cluster_particles: int = 20  # every surviving cluster keeps at least this many particles
+    prune_nats: float = 25.0  # clusters this far below the leader are dropped
+    max_clusters: int = 300  # at most this many clusters are kept (the largest shares)
+    kld_epsilon: float = 0.05  # KLD-sampling bound while searching (Fox 2003) ...
+    kld_bin_xy_m: float = 1.0  # ... on bins of this size ...
+    kld_bin_yaw_deg: float = 10.0
+    min_search_particles: int = 1000  # ... but never fewer than this while searching
 
 
 @dataclass
 class RecoverySettings:
     enabled: bool = True
+    signal: str = "inliers"  # inliers: lost when even the best particle's inlier share (rays within
+    # 0.3 m of the map among those not measured beyond it) falls below inlier_factor × its running median;
+    # residual: when the best mean residual rises (the settings below)
+    inlier_factor: float = 0.5
     min_residual_m: float | None = None  # lost when the best particle's badness exceeds this (None: the
     # model's floor, 0.3 m for the range model) ...
     factor: float = 2.0  # ... and this many times its median over the recent converged updates ...
@@ -116,6 +144,14 @@ class InitSettings:
     drive_radius_m: float = 6.0  # with a map that keeps its mapping drive: spread within this of it
     heading_sigma_deg: float = 15.0  # ... with yaw along the drive (either way) within this
     uniform_yaw_share: float = 0.25  # share of particles with uniform yaw all the same
+    place_prior: bool = True  # draw particles from the place prior (rangemcl.localization.place_prior)
+    prior_share: float = 0.7  # share of a global spread drawn from the prior's best places (the rest
+    # uniform over the drivable area, so that no place is excluded)
+    prior_top: int = 300  # the prior's best (cell, yaw) candidates drawn from (at most 2 % of its cells)
+    prior_cell_m: float = 2.0  # the prior's grid
+    prior_yaw_sigma_deg: float = 2.0  # yaw spread around a candidate's aligned yaw
+    inject_share: float = 0.05  # while searching: fresh prior particles per update (of the cloud) ...
+    inject_below_share: float = 0.5  # ... while no hypothesis holds this share of the weight
 
 
 @dataclass
@@ -142,6 +178,15 @@ class LocalizerSettings:
             "convergence.tiles": c.tiles,
             "recovery.updates": r.updates,
             "recovery.history": r.history,
+            "convergence.cluster_m": c.cluster_m,
+            "convergence.min_cluster_particles": c.min_cluster_particles,
+            "convergence.max_clusters": c.max_clusters,
+            "convergence.kld_epsilon": c.kld_epsilon,
+            "convergence.kld_bin_xy_m": c.kld_bin_xy_m,
+            "convergence.kld_bin_yaw_deg": c.kld_bin_yaw_deg,
+            "convergence.min_search_particles": c.min_search_particles,
+            "init.prior_top": self.init.prior_top,
+            "init.prior_cell_m": self.init.prior_cell_m,
         }
         for key in (
             "overlap_tau_m",
@@ -155,6 +200,8 @@ class LocalizerSettings:
             positive[f"observation.{key}"] = getattr(o, key)
         if o.cap_m is not None:
             positive["observation.cap_m"] = o.cap_m
+        if o.cap_beyond_m is not None:
+            positive["observation.cap_beyond_m"] = o.cap_beyond_m
         if r.min_residual_m is not None:
             positive["recovery.min_residual_m"] = r.min_residual_m
         if self.sensor_height_m is not None:
@@ -181,10 +228,23 @@ class LocalizerSettings:
             "init.heading_sigma_deg": self.init.heading_sigma_deg,
             "particles.global_jitter_xy_m": p.global_jitter_xy_m,
             "particles.global_jitter_yaw_deg": p.global_jitter_yaw_deg,
+            "convergence.margin_nats": c.margin_nats,
+            "convergence.min_distance_m": c.min_distance_m,
+            "convergence.prune_nats": c.prune_nats,
+            "convergence.separation_m": c.separation_m,
+            "recovery.inlier_factor": r.inlier_factor,
+            "init.prior_yaw_sigma_deg": self.init.prior_yaw_sigma_deg,
         }
         for key, value in non_negative.items():
             if not (math.isfinite(value) and value >= 0):
                 raise InputError(f"{where}: {key} must be >= 0, got {value}")
+        for key in ("prior_share", "inject_share", "inject_below_share"):
+            if not 0 <= getattr(self.init, key) <= 1:
+                raise InputError(f"{where}: init.{key} must be in [0, 1], got {getattr(self.init, key)}")
+        if c.method not in ("hypotheses", "tiles"):
+            raise InputError(f"{where}: convergence.method {c.method!r}: expected 'hypotheses' or 'tiles'")
+        if r.signal not in ("inliers", "residual"):
+            raise InputError(f"{where}: recovery.signal {r.signal!r}: expected 'inliers' or 'residual'")
         if not 0 <= self.init.uniform_yaw_share <= 1:
             raise InputError(
                 f"{where}: init.uniform_yaw_share must be in [0, 1], got {self.init.uniform_yaw_share}"
@@ -257,9 +317,11 @@ class ScanRays:
     directions: np.ndarray  # (R, 3) float64
     ranges: np.ndarray  # (R,) float64
     valid_points: int  # valid points in the scan before subsampling
+    structure: np.ndarray | None = None  # (R,) bool: met something above the ground (set by the filter)
 
 
 ELEVATION_BAND_DEG = 2.0  # observation.ray_sampling "elevation": the bands sampled alike
+STRUCTURE_M = 0.5  # a ray whose point lies this far above the sensor's ground met structure, not road
 
 
 def prepare_rays(
@@ -335,6 +397,10 @@ class StepInfo:
     neff: float
     recovered: bool  # the filter declared itself lost and spread the particles again
     seconds: float
+    hypotheses: int = 0  # clusters while searching (0 once converged or without an update)
+    evidence_nats: float = math.nan  # the leader's log weight share over the runner-up's (searching)
+    inliers: float = math.nan  # the best particle's inlier share (models that report it)
+    converged_now: bool = False  # convergence was declared at this update
 
 
 class MonteCarloLocalizer:
@@ -389,6 +455,12 @@ class MonteCarloLocalizer:
         m = self.settings.motion
         self.noise = MotionNoise(m.rot_per_rot, m.rot_per_trans, m.trans_per_trans, m.trans_per_rot)
         self.init_cells = drivable_cells(mesh_map, self.settings.init)
+        c = self.settings.convergence
+        self.convergence_test = ConvergenceTest(
+            c.margin_nats, c.min_distance_m, c.compact_radius_m, c.separation_m
+        )
+        self.prior: PlacePrior | None = None
+        self.prior_source = ""
         self.particles = np.zeros((0, 3))
         self.log_w = np.zeros(0)
         self.converged = False
@@ -399,14 +471,38 @@ class MonteCarloLocalizer:
         self._best_history: list[float] = []
         self._bad_updates = 0
         self._spread_count = self.settings.particles.global_count
+        self._prior_pending = False  # a global spread waits for a scan to draw from the prior
+        self._leader: np.ndarray | None = None  # per particle: descends from the last leading cluster
+        self._moved_m = 0.0
+        self.hypotheses: list = []  # the search's clusters at the last update, largest share first
 
     # --- initialisation ---------------------------------------------------------------------------------
 
+    def place_prior(self) -> PlacePrior:
+        """The map's place prior (loaded from the map folder, else rendered once and stored there)."""
+        if self.prior is None:
+            i = self.settings.init
+            area = self.init_cells
+            self.prior, self.prior_source = load_or_build(
+                self.map, self.caster, area.corners, area.cell_m, PriorParams(cell_m=i.prior_cell_m)
+            )
+        return self.prior
+
     def spread(self, n: int | None = None) -> None:
         """Global localization: ``n`` particles uniform over the drivable area; yaw along the mapping
-        drive (either way) where the map keeps it, with a share of uniform yaw, else uniform."""
+        drive (either way) where the map keeps it, with a share of uniform yaw, else uniform. With the
+        place prior on, a share of them is redrawn at the first update from the places that match that
+        scan (:mod:`rangemcl.localization.place_prior`)."""
         n = int(n or self.settings.particles.global_count)
         self._spread_count = n
+        self._set_particles(self._uniform(n))
+        self.converged = False
+        self._prior_pending = self.settings.init.place_prior
+        if self._prior_pending:
+            self.place_prior()
+        self.convergence_test.reset()
+
+    def _uniform(self, n: int) -> np.ndarray:
         area = self.init_cells
         k = self.rng.integers(0, len(area.corners), n)
         xy = area.corners[k] + self.rng.uniform(0.0, area.cell_m, (n, 2))
@@ -420,8 +516,23 @@ class MonteCarloLocalizer:
                 + np.pi * self.rng.integers(0, 2, m)
                 + self.rng.normal(0.0, math.radians(init.heading_sigma_deg), m)
             )
-        self._set_particles(np.column_stack([xy, yaw]))
-        self.converged = False
+        return np.column_stack([xy, yaw])
+
+    def _from_prior(self, n: int, levelled_points: np.ndarray) -> np.ndarray | None:
+        """``n`` particles around the prior's best places for this scan (None when the scan has too few
+        points in the prior's height band to compare)."""
+        i = self.settings.init
+        prior = self.place_prior()
+        top = min(i.prior_top, max(20, len(prior.xy) // 50))  # at most 2 % of the map's cells
+        xy, yaw, _cost, known = prior.candidates(levelled_points, self.sensor_height_m, top)
+        if known < max(8, prior.params.bins // 20) or n <= 0:
+            return None
+        k = self.rng.integers(0, len(xy), n)
+        half = 0.5 * prior.params.cell_m
+        out = np.empty((n, 3))
+        out[:, :2] = xy[k] + self.rng.uniform(-half, half, (n, 2))
+        out[:, 2] = wrap_angle(yaw[k] + self.rng.normal(0.0, math.radians(i.prior_yaw_sigma_deg), n))
+        return out
 
     def start_at(self, pose_xyyaw, n: int | None = None) -> None:
         """Pose tracking: ``n`` particles around a known start pose."""
@@ -441,6 +552,7 @@ class MonteCarloLocalizer:
         parts[:, 2] = wrap_angle(parts[:, 2])
         self._set_particles(parts)
         self.converged = True
+        self._prior_pending = False
         self.last_estimate = x0.copy()
 
     def _set_particles(self, particles: np.ndarray) -> None:
@@ -449,6 +561,7 @@ class MonteCarloLocalizer:
         self.pending = np.zeros(3)
         self._best_history.clear()
         self._bad_updates = 0
+        self._leader = None
         self.last_estimate = pose_estimate(
             self.particles, self.weights, self.settings.particles.estimate_best_share
         )
@@ -505,7 +618,17 @@ class MonteCarloLocalizer:
             if rays is None:
                 info["skipped_scan"] = True
             else:
-                info.update(self._weigh(rays))
+                # above the ground by STRUCTURE_M at the sensor's own ground (flat around the car)
+                height = rays.directions[:, 2] * rays.ranges + self.sensor_height_m
+                rays.structure = height > STRUCTURE_M
+                levelled = None
+                if self._needs_prior():
+                    levelled = np.asarray(points, np.float64).reshape(-1, 3)
+                    if roll_pitch is not None and self.settings.observation.level_with_imu:
+                        levelled = levelled @ rotation_roll_pitch(*roll_pitch).T
+                if self._prior_pending and levelled is not None:
+                    self._draw_initial_prior(levelled)
+                info.update(self._weigh(rays, levelled))
         w = self.weights
         return StepInfo(
             estimate=self.estimate(),
@@ -516,8 +639,22 @@ class MonteCarloLocalizer:
             **info,
         )
 
+    def _needs_prior(self) -> bool:
+        return self.settings.init.place_prior and not self.converged
+
+    def _draw_initial_prior(self, levelled: np.ndarray) -> None:
+        n = len(self.particles)
+        k = int(round(self.settings.init.prior_share * n))
+        drawn = self._from_prior(k, levelled)
+        if drawn is None:
+            return  # too little in the scan to compare: stay uniform, try again at the next update
+        self.particles[self.rng.choice(n, k, replace=False)] = drawn
+        self.log_w = np.zeros(n)
+        self._prior_pending = False
+
     def _move(self) -> None:
         increment = odometry_increment(np.zeros(3), self.pending)
+        self._moved_m = float(math.hypot(self.pending[0], self.pending[1]))
         self.particles = sample_motion(self.particles, increment, self.noise, self.rng)
         self.last_estimate = se2_compose(self.last_estimate, self.pending)
         self.pending = np.zeros(3)
@@ -532,29 +669,99 @@ class MonteCarloLocalizer:
         self.model.set_scan(rays.directions, rays.ranges)
         return self.model.mean_residuals(p, self.sensor_z(p[:, :2])).astype(np.float64)
 
-    def _weigh(self, rays: ScanRays) -> dict:
+    def _weigh(self, rays: ScanRays, levelled: np.ndarray | None = None) -> dict:
         loglik, bad = self.scorer.score(rays, self.particles, self.sensor_z(self.particles[:, :2]))
         self.log_w = self.log_w + loglik
         best = float(bad.min())
-        out = dict(updated=True, resampled=False, best_residual_m=best, skipped_scan=False, recovered=False)
+        inl = self.scorer.last_inliers
+        inliers = float(inl[np.argmax(loglik)]) if inl is not None and len(inl) else math.nan
+        out = dict(
+            updated=True,
+            resampled=False,
+            best_residual_m=best,
+            skipped_scan=False,
+            recovered=False,
+            inliers=inliers,
+        )
         ps = self.settings.particles
         w = self.weights
         self.last_estimate = pose_estimate(self.particles, w, ps.estimate_best_share)
-        if self.converged and self._lost(best):
+        if self.converged and self._lost(best, inliers):
             self.recoveries += 1
             self.spread(self._spread_count_for_recovery())
             out["recovered"] = True
             return out
         n = len(self.particles)
-        if not self.converged and self._is_converged():
-            self._resample(w, min(ps.converged_count, n))
-            self.converged = True
-            out["resampled"] = True
+        if not self.converged:
+            if self.settings.convergence.method == "hypotheses":
+                out.update(self._search_update(w, levelled))
+            elif self._is_converged():
+                self._resample(w, min(ps.converged_count, n))
+                self.converged = True
+                out.update(resampled=True, converged_now=True)
+            elif effective_sample_size(w) < ps.resample_neff_ratio * n:
+                self._resample(w, n)
+                out["resampled"] = True
         elif effective_sample_size(w) < ps.resample_neff_ratio * n:
             self._resample(w, n)
             out["resampled"] = True
         if self.converged:
             self.converged_updates += 1
+        return out
+
+    def _search_update(self, w: np.ndarray, levelled: np.ndarray | None) -> dict:
+        """One update of the hypothesis search (:mod:`rangemcl.localization.hypotheses`): cluster,
+        test for a winner, else resample cluster by cluster to the KLD size and inject prior particles."""
+        c = self.settings.convergence
+        ps = self.settings.particles
+        labels, count = cluster_labels(self.particles[:, :2], c.cluster_m)
+        hyps = summarize(self.particles, w, labels, count)
+        self.hypotheses = hyps
+        best = hyps[0]
+        same = False
+        if self._leader is not None and len(self._leader) == len(labels):
+            same = bool(self._leader[labels == best.label].mean() >= 0.5)
+        won = self.convergence_test.update(hyps, same, self._moved_m)
+        margin = self.convergence_test.margin
+        out = dict(resampled=True, hypotheses=len(hyps), evidence_nats=margin)
+        if won:
+            inside = np.flatnonzero(labels == best.label)
+            wi = w[inside] / w[inside].sum()
+            self.particles = self.particles[inside]
+            self._resample(wi, min(ps.converged_count, len(inside)))
+            self.converged = True
+            self._leader = None
+            self.last_estimate = pose_estimate(self.particles, self.weights, ps.estimate_best_share)
+            out["converged_now"] = True
+            return out
+        keep = [h for h in hyps if h.log_share >= best.log_share - c.prune_nats][: c.max_clusters]
+        provisional = self.particles[low_variance_resample(w, self.rng, len(w))]
+        size = kld_sample_size(occupied_bins(provisional, c.kld_bin_xy_m, c.kld_bin_yaw_deg), c.kld_epsilon)
+        size = int(np.clip(size, c.min_search_particles, max(self._spread_count, c.min_search_particles)))
+        parts, logw, origin = resample_by_cluster(
+            self.particles, w, labels, keep, size, c.min_cluster_particles, self.rng
+        )
+        n = len(parts)
+        sxy, syaw = ps.global_jitter_xy_m, math.radians(ps.global_jitter_yaw_deg)
+        parts[:, :2] += self.rng.normal(0.0, sxy, (n, 2))
+        parts[:, 2] = wrap_angle(parts[:, 2] + self.rng.normal(0.0, syaw, n))
+        leader = origin == 0
+        i = self.settings.init
+        if (
+            i.place_prior
+            and levelled is not None
+            and best.share < i.inject_below_share
+            and i.inject_share > 0
+        ):
+            k = max(1, int(round(i.inject_share * n)))
+            fresh = self._from_prior(k, levelled)
+            if fresh is not None:
+                parts = np.vstack([parts, fresh])
+                logw = np.concatenate(
+                    [logw + math.log(1.0 - i.inject_share), np.full(k, math.log(i.inject_share / k))]
+                )
+                leader = np.concatenate([leader, np.zeros(k, bool)])
+        self.particles, self.log_w, self._leader = parts, logw, leader
         return out
 
     def _spread_count_for_recovery(self) -> int:
@@ -585,21 +792,32 @@ class MonteCarloLocalizer:
         tiles = np.unique(self.map.tile_at(self.particles[:, 0], self.particles[:, 1]))
         return len(tiles) <= c.tiles and r95 <= c.max_radius_m
 
-    def _lost(self, best: float) -> bool:
+    def _lost(self, best: float, inliers: float = math.nan) -> bool:
+        """Lost when the watched signal stays bad for ``recovery.updates`` updates in a row: the best
+        particle's inlier share below ``inlier_factor`` × its running median (``signal: inliers``; a
+        removed object in the map does not lower it, see :func:`rangemcl.models.inlier_share`), or its
+        badness above ``factor`` × its running median (``signal: residual``)."""
         r = self.settings.recovery
         if not r.enabled:
             return False
         hist = self._best_history
-        floor = self.scorer.lost_floor if r.min_residual_m is None else r.min_residual_m
-        if len(hist) >= min(5, r.history):
-            limit = max(floor, r.factor * float(np.median(hist)))
-        else:  # just converged: no history yet, so judge against the floor (with some room)
-            limit = 1.5 * floor
-        if best > limit:
+        if r.signal == "inliers" and math.isfinite(inliers):
+            value = inliers
+            limit = r.inlier_factor * (float(np.median(hist)) if len(hist) >= min(5, r.history) else 0.6)
+            bad = value < limit
+        else:
+            value = best
+            floor = self.scorer.lost_floor if r.min_residual_m is None else r.min_residual_m
+            if len(hist) >= min(5, r.history):
+                limit = max(floor, r.factor * float(np.median(hist)))
+            else:  # just converged: no history yet, so judge against the floor (with some room)
+                limit = 1.5 * floor
+            bad = value > limit
+        if bad:
             self._bad_updates += 1
         else:
             self._bad_updates = 0
-            hist.append(best)
+            hist.append(value)
             del hist[: -r.history]
         return self._bad_updates >= r.updates
 

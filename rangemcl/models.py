@@ -30,10 +30,21 @@ MODEL_NAMES = ("range", "overlap", "likelihood_field", "histogram")
 
 
 class ScoringModel:
-    """Base: ``score(rays, particles, sensor_z) -> (log-likelihood (N,), badness (N,))``."""
+    """Base: ``score(rays, particles, sensor_z) -> (log-likelihood (N,), badness (N,))``.
+
+    Models that cast rays also leave ``last_inliers`` ``(N,)``: per particle, the share of the scan's
+    structure rays (those that met something above the ground: the ground agrees almost anywhere) that
+    agree with the map within ``inlier_m``; lost detection watches it. ``None`` for models without it."""
 
     name = ""
     lost_floor = 0.3  # the recovery's floor on the best badness, in the model's units
+    last_inliers: np.ndarray | None = None
+    inlier_m = 0.3
+
+
+def inlier_share(scores: dict) -> np.ndarray:
+    """The share of the structure rays that agree with the map within the inlier distance."""
+    return scores["structure"].astype(np.float64)
 
     def score(self, rays, particles: np.ndarray, sensor_z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         raise NotImplementedError
@@ -48,8 +59,10 @@ class RangeModel(ScoringModel):
         self.sigma = float(sigma_m)
 
     def score(self, rays, particles, sensor_z):
-        self.kernel.set_scan(rays.directions, rays.ranges)
-        d = self.kernel.mean_residuals(particles, sensor_z).astype(np.float64)
+        self.kernel.set_scan(rays.directions, rays.ranges, structure=rays.structure)
+        out = self.kernel.scores(particles, sensor_z, agree_m=self.inlier_m)
+        self.last_inliers = inlier_share(out)
+        d = out["mean"].astype(np.float64)
         return -0.5 * d * d / self.sigma**2, d
 
 
@@ -63,8 +76,10 @@ class OverlapModel(ScoringModel):
         self.sigma = float(sigma)
 
     def score(self, rays, particles, sensor_z):
-        self.kernel.set_scan(rays.directions, rays.ranges)
-        a = self.kernel.scores(particles, sensor_z, agree_m=self.tau)["agree"].astype(np.float64)
+        self.kernel.set_scan(rays.directions, rays.ranges, structure=rays.structure)
+        out = self.kernel.scores(particles, sensor_z, agree_m=self.tau)
+        self.last_inliers = inlier_share(out)
+        a = out["agree"].astype(np.float64)
         bad = 1.0 - a
         return -0.5 * (bad / self.sigma) ** 2, bad
 
@@ -215,9 +230,11 @@ def make_model(name: str, caster, settings, mesh_map) -> ScoringModel:
     """The observation model ``name`` (one of :data:`MODEL_NAMES`) with the given ObservationSettings."""
     o = settings
     cap = np.inf if o.cap_m is None else o.cap_m
+    beyond = cap if o.cap_beyond_m is None else o.cap_beyond_m
     if name == "range":
         return RangeModel(
-            ObservationModel(caster, sigma_m=o.sigma_m, margin_m=o.margin_m, cap_m=cap), o.sigma_m
+            ObservationModel(caster, sigma_m=o.sigma_m, margin_m=o.margin_m, cap_m=cap, cap_beyond_m=beyond),
+            o.sigma_m,
         )
     if name == "overlap":
         return OverlapModel(ObservationModel(caster, margin_m=o.margin_m), o.overlap_tau_m, o.overlap_sigma)

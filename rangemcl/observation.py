@@ -7,6 +7,14 @@ number per particle, nothing per pixel leaves it. A ray is cast no farther than 
 margin; a ray that meets nothing by then counts as a residual of that margin (never as a range of 0, the
 reference code's fault). Residuals are capped (``cap_m``) for robustness to moving objects.
 
+Changes in the world are treated by their direction: a ray measured *shorter* than the map's surface met
+something the map lacks (an actor, a newly parked car) or the pose is wrong; a ray measured *longer* than
+the map's surface passed where the map holds something that is gone (a parked car of the mapping drive).
+A ray measured more than ``cap_m`` beyond the map's surface costs ``cap_beyond_m`` (≤ ``cap_m``) instead
+of ``cap_m``, so removed objects weigh less; below ``cap_m`` both directions cost alike (an asymmetric cost
+there pulls the estimate towards the walls: measured, 0.3-0.8 m of bias). Rays beyond the surface are also
+counted (``beyond``).
+
 ``p(z | x) ∝ exp(−½ d² / σ_d²)``: :meth:`ObservationModel.log_likelihood`.
 """
 
@@ -29,13 +37,17 @@ def particle_residual_kernel(
     directions: wp.array[wp.vec3],  # measured rays, levelled sensor frame, unit
     origins: wp.array[wp.vec3],  # per-ray origin offsets in the sensor frame
     measured: wp.array[float],
+    structure: wp.array[float],  # 1 for rays that met structure (not the ground), else 0
     margin: float,
     cap: float,
+    cap_beyond: float,  # cost of a ray measured more than cap beyond the map's surface (a removed object)
     tau: float,  # a ray agrees when its residual is below tau
     hist_top: float,  # rendered ranges binned into out_hist's columns over [0, hist_top)
     offset: int,
     out_mean: wp.array[float],
     out_agree: wp.array[float],
+    out_beyond: wp.array[float],  # share of rays measured more than tau beyond the map's surface
+    out_structure: wp.array[float],  # share of the structure rays that agree
     out_hist: wp.array2d[float],  # (N, bins); (1, 0) when no histogram is wanted
 ):
     k = wp.tid() + offset
@@ -45,6 +57,9 @@ def particle_residual_kernel(
     base = wp.vec3(p[0], p[1], sensor_z[k])
     total = float(0.0)
     agree = float(0.0)
+    beyond = float(0.0)
+    s_agree = float(0.0)
+    s_count = float(0.0)
     bins = out_hist.shape[1]
     for i in range(directions.shape[0]):
         d = directions[i]
@@ -54,16 +69,26 @@ def particle_residual_kernel(
         limit = measured[i] + margin
         t, m, _face, _normal = closest_hit(meshes, inv_poses, moved, ow, dw, limit)
         r = float(margin)
+        lim = cap
         if m >= 0:
-            r = wp.abs(measured[i] - t)
+            e = measured[i] - t
+            r = wp.abs(e)
+            if e > tau:
+                beyond += 1.0
+            if e > cap:  # far beyond the map's surface: a removed object, not a small pose error
+                lim = cap_beyond
             if bins > 0 and t < hist_top:
                 b = wp.min(int(t / hist_top * float(bins)), bins - 1)
                 out_hist[k, b] = out_hist[k, b] + 1.0
+        s_count += structure[i]
         if r < tau:
             agree += 1.0
-        total += wp.min(r, cap)
+            s_agree += structure[i]
+        total += wp.min(r, lim)
     out_mean[k] = total / float(directions.shape[0])
     out_agree[k] = agree / float(directions.shape[0])
+    out_beyond[k] = beyond / float(directions.shape[0])
+    out_structure[k] = s_agree / wp.max(s_count, 1.0)
 
 
 class ObservationModel:
@@ -74,22 +99,37 @@ class ObservationModel:
         sigma_m: σ_d of Eq. 5 (paper 5.0, reference code 2.0).
         margin_m: how far past the measured range a ray is cast.
         cap_m: residual cap (robust variant); ``inf`` for the plain paper model.
+        cap_beyond_m: cost of a ray measured more than ``cap_m`` longer than the map's surface (default:
+            ``cap_m``, symmetric).
     """
 
     def __init__(
-        self, caster: RayCaster, *, sigma_m: float = 2.0, margin_m: float = 2.0, cap_m: float = np.inf
+        self,
+        caster: RayCaster,
+        *,
+        sigma_m: float = 2.0,
+        margin_m: float = 2.0,
+        cap_m: float = np.inf,
+        cap_beyond_m: float | None = None,
     ):
-        if not sigma_m > 0 or not margin_m > 0 or not cap_m > 0:
-            raise InputError(f"sigma_m, margin_m and cap_m must be > 0, got {sigma_m}, {margin_m}, {cap_m}")
+        if cap_beyond_m is None:
+            cap_beyond_m = cap_m
+        if not sigma_m > 0 or not margin_m > 0 or not cap_m > 0 or not cap_beyond_m > 0:
+            raise InputError(
+                f"sigma_m, margin_m, cap_m and cap_beyond_m must be > 0, got {sigma_m}, {margin_m}, {cap_m}, "
+                f"{cap_beyond_m}"
+            )
         self.caster = caster
         self.sigma_m = float(sigma_m)
         self.margin_m = float(margin_m)
         self.cap_m = float(min(cap_m, 3.0e38))
+        self.cap_beyond_m = float(min(cap_beyond_m, self.cap_m))
         self._rays: tuple | None = None
 
-    def set_scan(self, directions, ranges, origins=None) -> None:
+    def set_scan(self, directions, ranges, origins=None, structure=None) -> None:
         """The measured rays of a scan: unit directions ``(R, 3)`` in the levelled sensor frame, ranges
-        ``(R,)`` (> 0), optional per-ray origin offsets ``(R, 3)``."""
+        ``(R,)`` (> 0), optional per-ray origin offsets ``(R, 3)`` and ``structure`` flags ``(R,)`` (rays
+        that met something above the ground; default: all)."""
         d = np.asarray(directions, np.float32)
         r = np.asarray(ranges, np.float32).reshape(-1)
         if d.ndim != 2 or d.shape[1] != 3 or len(d) != len(r) or len(d) == 0:
@@ -99,11 +139,19 @@ class ObservationModel:
         if not (np.isfinite(d).all() and np.isfinite(r).all() and (r > 0).all()):
             raise InputError("scan rays: directions and ranges must be finite and ranges > 0")
         o = np.zeros_like(d) if origins is None else np.asarray(origins, np.float32).reshape(d.shape)
+        st = (
+            np.ones(len(r), np.float32)
+            if structure is None
+            else np.asarray(structure, np.float32).reshape(-1)
+        )
+        if len(st) != len(r):
+            raise InputError(f"scan rays: {len(st)} structure flags for {len(r)} rays")
         dev = self.caster.device
         self._rays = (
             wp.array(d / np.linalg.norm(d, axis=1, keepdims=True), dtype=wp.vec3, device=dev),
             wp.array(o, dtype=wp.vec3, device=dev),
             wp.array(r, dtype=float, device=dev),
+            wp.array(st, dtype=float, device=dev),
         )
 
     def mean_residuals(self, particles, sensor_z) -> np.ndarray:
@@ -114,8 +162,10 @@ class ObservationModel:
         self, particles, sensor_z, *, agree_m: float = 0.3, hist_bins: int = 0, hist_top_m: float = 100.0
     ):
         """Per particle, from one pass over its rays: ``mean`` (``d`` of Eq. 5), ``agree`` (the share of
-        rays whose residual is below ``agree_m``) and, with ``hist_bins``, ``hist`` ``(N, bins)``: counts
-        of the rendered ranges (hits only) in equal bins over ``[0, hist_top_m)``."""
+        rays whose residual is below ``agree_m``), ``beyond`` (the share measured more than ``agree_m``
+        longer than the map's surface), ``structure`` (the share of the structure rays that agree) and,
+        with ``hist_bins``, ``hist`` ``(N, bins)``: counts of the rendered ranges (hits only) in equal bins
+        over ``[0, hist_top_m)``."""
         if self._rays is None:
             raise InputError("no scan set: call set_scan first")
         p = np.ascontiguousarray(particles, np.float32)
@@ -127,6 +177,8 @@ class ObservationModel:
         out = {
             "mean": np.empty(n, np.float32),
             "agree": np.empty(n, np.float32),
+            "beyond": np.empty(n, np.float32),
+            "structure": np.empty(n, np.float32),
             "hist": np.zeros((n if bins else 1, bins), np.float32),
         }
         if n == 0:
@@ -144,11 +196,15 @@ class ObservationModel:
             *self._rays,
             self.margin_m,
             self.cap_m,
+            self.cap_beyond_m,
             float(agree_m),
             float(hist_top_m),
         ]
         if cpu:
-            outs = [wp.array(out[k], dtype=float, device=dev, copy=False) for k in ("mean", "agree", "hist")]
+            outs = [
+                wp.array(out[k], dtype=float, device=dev, copy=False)
+                for k in ("mean", "agree", "beyond", "structure", "hist")
+            ]
             bounds = np.linspace(0, n, min(n, 4 * c.threads) + 1).astype(int)
 
             def run(k: int) -> None:
@@ -171,10 +227,14 @@ class ObservationModel:
         outs = [
             wp.empty(n, dtype=float, device=dev),
             wp.empty(n, dtype=float, device=dev),
+            wp.empty(n, dtype=float, device=dev),
+            wp.empty(n, dtype=float, device=dev),
             wp.zeros(out["hist"].shape, dtype=float, device=dev),
         ]
         wp.launch(particle_residual_kernel, dim=n, inputs=[*inputs, 0], outputs=outs, device=dev)
-        return {"mean": outs[0].numpy(), "agree": outs[1].numpy(), "hist": outs[2].numpy()}
+        return {
+            k: a.numpy() for k, a in zip(("mean", "agree", "beyond", "structure", "hist"), outs, strict=True)
+        }
 
     def log_likelihood(self, mean_residuals: np.ndarray) -> np.ndarray:
         """Eq. 5 in log form: ``−½ d² / σ_d²``."""

@@ -191,6 +191,7 @@ def trials(
         models=None if models is None else tuple(m.strip() for m in models.split(",") if m.strip()),
         sensors=None if sensors is None else tuple(m.strip() for m in sensors.split(",") if m.strip()),
         settings="" if config is None else suite_settings(config),
+        method="default" if config is None else config.stem,
     )
     rows = run_suite(
         suite,

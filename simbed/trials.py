@@ -61,18 +61,24 @@ class Trial:
     seed: int
     kidnap: bool = False
     settings: str = ""  # localizer settings the suite was given (canonical JSON; "" = the defaults)
+    method: str = "default"  # a name for those settings in the tables (the config file's stem); not keyed
 
     @property
     def key(self) -> str:
         return (
             f"{self.suite}-{self.drive_key}-s{self.start_frame}-f{self.frames}-p{self.particles}-{self.model}"
             f"-r{self.seed}{'-kidnap' if self.kidnap else ''}{settings_tag(self.settings)}"
+            f"-v{LOCALIZER_REVISION}"
         )
 
     @property
     def drive_key(self) -> str:
         return drive_key(*(getattr(self, k) for k in DRIVE_FIELDS))
 
+
+# in every trial key: the localizer's defaults changed (issue 13: place prior, hypotheses, change-robust
+# observation), so trials of earlier revisions (keys without "-v2") are never taken for today's
+LOCALIZER_REVISION = 2
 
 DRIVE_FIELDS = ("scene", "sensor", "route", "variant", "actors", "drive_seed", "drive_frames")
 
@@ -97,6 +103,7 @@ class SuiteConfig:
     models: tuple[str, ...] | None = None  # suites 'particles' and 'models' (default: all four)
     sensors: tuple[str, ...] | None = None  # suite 'sensors' (default: the paper's five presets)
     settings: str = ""  # localizer settings for every trial (canonical JSON, see suite_settings)
+    method: str = "default"  # their name in the tables
 
 
 def suite_settings(path) -> str:
@@ -162,6 +169,7 @@ def suite_trials(suite: str, quick: bool = False, config: SuiteConfig | None = N
                     seed0 + k,
                     kidnap,
                     c.settings,
+                    c.method,
                 )
             )
         return out
@@ -282,6 +290,9 @@ def run_trial(
         "location_rmse_m": m.get("location_rmse_m"),
         "yaw_rmse_deg": m.get("yaw_rmse_deg"),
         "location_median_m": m.get("location_median_m"),
+        "wrong_convergences": m.get("wrong_convergences_count", 0),
+        "wrong_convergences_uncaught": m.get("wrong_convergences_uncaught", 0),
+        "false_alarms": m.get("false_alarms_count", 0),
         "frames_after_convergence": None if conv is None else m["frames"] - (conv - s["first_frame"]),
         "seconds_per_frame_before": s["seconds_per_frame_before_convergence_median"],
         "hz_after": s["hz_after_convergence"],
@@ -306,6 +317,9 @@ ROW_FIELDS = [f.name for f in fields(Trial) if f.name != "settings"] + [
     "location_rmse_m",
     "yaw_rmse_deg",
     "location_median_m",
+    "wrong_convergences",
+    "wrong_convergences_uncaught",
+    "false_alarms",
     "frames_after_convergence",
     "seconds_per_frame_before",
     "hz_after",
@@ -451,6 +465,12 @@ def _truthy(x) -> bool:
     return str(x).lower() in ("true", "1")
 
 
+def _total(rows: list[dict], col: str) -> int | None:
+    """Sum of a count column (None when no row has it: rows of earlier revisions lack the event counts)."""
+    vals = [_num(r.get(col)) for r in rows if r.get(col) not in ("", None)]
+    return int(np.sum(vals)) if vals else None
+
+
 def aggregate(rows: list[dict], by: list[str]) -> list[dict]:
     """Per group: trials, successes, RMSE over the successful trials' frames after convergence, medians."""
     groups: dict[tuple, list[dict]] = {}
@@ -471,6 +491,7 @@ def aggregate(rows: list[dict], by: list[str]) -> list[dict]:
         before = [
             _num(r["seconds_per_frame_before"]) for r in rs if r["seconds_per_frame_before"] not in ("", None)
         ]
+
         reloc = [
             _num(r["relocalized_after_frames"])
             for r in rs
@@ -485,6 +506,11 @@ def aggregate(rows: list[dict], by: list[str]) -> list[dict]:
                 # alarm and not converged again), or its last convergence > 5 m off then or at a later check
                 "not_converged": len(rs) - len(converged),
                 "converged_failed": len(converged) - len(good),  # a success has always converged
+                "wrong_convergences": _total(rs, "wrong_convergences"),  # declared > 5 m off (even if caught)
+                "wrong_uncaught": _total(
+                    rs, "wrong_convergences_uncaught"
+                ),  # ... and not undone in 10 frames
+                "false_alarms": _total(rs, "false_alarms"),  # declared lost while within 2 m
                 "location_rmse_m": float(np.sqrt(np.sum(w * loc**2) / w.sum()))
                 if len(good) and w.sum() > 0
                 else None,
@@ -527,6 +553,11 @@ def write_report(suite: str, rows: list[dict], out: Path) -> tuple[Path, Path]:
         "kidnap": ["model"],
         "runtime": ["particles"],
     }[suite]
+    for r in rows:
+        r.setdefault("method", "default")
+        r["method"] = r["method"] or "default"
+    if len({r["method"] for r in rows}) > 1:  # e.g. the paper's pipeline beside ours on the same trials
+        by = ["method", *by]
     agg = aggregate(rows, by)
     lines = [
         f"# simbed trials: {suite}",
@@ -536,14 +567,22 @@ def write_report(suite: str, rows: list[dict], out: Path) -> tuple[Path, Path]:
         "location_median_m = median over the successful trials of each one's median error after convergence; "
         "the failures split into not_converged (not converged at the trial's end: never, or re-spread "
         "after a 'lost' alarm and not converged again) and converged_failed (its last convergence more than "
-        "5 m off then or at a later check).",
+        "5 m off then or at a later check). wrong_convergences: convergence declared while more than 5 m off "
+        "(counted even when caught), wrong_uncaught: of those, not undone by a re-spread within 10 frames; "
+        "false_alarms: 'lost' declared while the estimate was within 2 m.",
         "",
     ]
     cols = [*by, "trials", "successes", "location_rmse_m", "yaw_rmse_deg", "frames_to_converge_median"]
     if suite in ("sensors", "particles"):
         cols.insert(cols.index("yaw_rmse_deg"), "location_median_m")
         at = cols.index("successes") + 1
-        cols[at:at] = ["not_converged", "converged_failed"]
+        cols[at:at] = [
+            "not_converged",
+            "converged_failed",
+            "wrong_convergences",
+            "wrong_uncaught",
+            "false_alarms",
+        ]
     if suite == "models":
         cols += ["location_rmse_mean_m", "location_rmse_std_m", "yaw_rmse_mean_deg", "yaw_rmse_std_deg"]
     if suite == "sensors":

@@ -96,7 +96,7 @@ def errors(est, truth):
 
 def test_global_localization_converges_on_a_tiny_town(world):
     town, caster, m, path, geo = world
-    loc = MonteCarloLocalizer(m, small_settings(sigma_m=0.5, cap_m=1.0), seed=1, caster=caster)
+    loc = MonteCarloLocalizer(m, small_settings(), seed=1, caster=caster)
     loc.spread()
     assert len(loc.particles) == 3000
     est, infos = run(loc, town, caster, geo, path, [0.01, 0.005, 0.002], np.random.default_rng(2))
@@ -120,7 +120,7 @@ def test_tracking_follows_and_recovers_after_a_teleport(world):
     def truth_at(k):
         return path[k] if k < jump else other[k - jump] + offset
 
-    s = small_settings(sigma_m=0.5, cap_m=1.0)
+    s = small_settings()
     loc = MonteCarloLocalizer(m, s, seed=3, caster=caster)
     loc.start_at(path[0])
     assert loc.converged and len(loc.particles) == s.particles.tracking_count

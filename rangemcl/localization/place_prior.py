@@ -1,0 +1,292 @@
+"""The place prior: where in the map, and facing which way, could this scan have been taken?
+
+Global localization in a town-sized map fails when the few particles that land near the true pose are
+outnumbered by look-alike places (README, issue 13). The prior points the particles at the places that
+already look right, from the map alone:
+
+* **Map side, once per map** (:meth:`PlacePrior.build`): on a grid of ``cell_m`` over the drivable area, a
+  virtual sensor casts horizontal rays all around (``bins`` azimuths) at a few heights above the map's
+  ground (``heights_m``); each azimuth keeps the nearest hit (capped at ``max_range_m``). The result is a
+  *profile*: the distance to the nearest structure in every direction, at about a car's height. Stored
+  quantised to ``quant_m`` (one byte per azimuth) in the map folder (``place_prior.npz``, with a version
+  stamp and the parameters, rebuilt when either changes).
+* **Scan side, every search update** (:func:`scan_profile`): the scan's points whose height above the
+  ground lies in the band the virtual rays sample (``band_m``) give, per azimuth bin, the nearest
+  horizontal distance. Bins with no such point are unknown and left out of the comparison, so any sensor
+  (8 to 128 beams) gives a profile of the same kind.
+* **Matching** (:meth:`PlacePrior.match`): a rotation of the car is a circular shift of its profile, so
+  every cell is compared with the scan at *every* yaw at once: the masked squared difference for all
+  shifts is three circular correlations, done by FFT for all cells together. Each cell gets its best
+  shift (its yaw, refined between bins) and cost. The profile's FFT magnitude is the rotation-invariant
+  descriptor of the Scan Context / ring-key family; the full shift search makes it unnecessary to keep
+  it: the profile itself is the descriptor and the search is exact over yaw.
+
+Values are compared as ``log(1 + r)``: a 1 m error at 3 m matters, at 30 m it hardly does.
+Pure numpy apart from :meth:`PlacePrior.build`, which casts through a :class:`~rangemcl.raycast.RayCaster`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from rangemcl.errors import InputError
+
+PRIOR_FILE = "place_prior.npz"
+PRIOR_VERSION = 1
+
+
+@dataclass(frozen=True)
+class PriorParams:
+    """How the prior is rendered; part of its cache key."""
+
+    cell_m: float = 2.0  # grid spacing over the drivable area
+    bins: int = 360  # azimuth bins (1 degree)
+    heights_m: tuple[float, ...] = (0.6, 1.0, 1.4)  # virtual horizontal rays, above the ground
+    band_m: tuple[float, float] = (0.4, 1.6)  # scan points in this height band above the ground count
+    max_range_m: float = 30.0  # profiles are capped here (and the scan's points beyond are ignored)
+    min_range_m: float = 1.5  # scan points closer than this are ignored (the car itself)
+    quant_m: float = 0.125  # storage step: one byte per bin reaches 255 · 0.125 = 31.9 m
+
+    def check(self) -> None:
+        if not (self.cell_m > 0 and self.bins >= 8 and self.max_range_m > self.min_range_m >= 0):
+            raise InputError(f"place prior: bad parameters {self}")
+        if self.max_range_m / self.quant_m > 255:
+            raise InputError("place prior: max_range_m / quant_m must fit one byte (<= 255)")
+        if not self.band_m[0] < self.band_m[1] or not self.heights_m:
+            raise InputError(f"place prior: bad height band {self.band_m} or heights {self.heights_m}")
+
+
+def _encode(x: np.ndarray) -> np.ndarray:
+    return np.log1p(np.asarray(x, np.float64))
+
+
+def scan_profile(
+    points: np.ndarray, sensor_height_m: float, params: PriorParams
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per azimuth bin the nearest horizontal distance of the scan's points in the height band, and a
+    mask of the bins that have one. ``points`` ``(M, 3)`` in the *levelled* sensor frame (x forward);
+    bin ``i`` spans azimuths ``[−π + iΔ, −π + (i+1)Δ)``. Returns ``(profile (B,), known (B,) bool)``."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    p = p[np.isfinite(p).all(axis=1)]
+    h = p[:, 2] + float(sensor_height_m)
+    r = np.hypot(p[:, 0], p[:, 1])
+    keep = (h >= params.band_m[0]) & (h <= params.band_m[1]) & (r >= params.min_range_m)
+    B = params.bins
+    prof = np.full(B, params.max_range_m)
+    known = np.zeros(B, bool)
+    if keep.any():
+        az = np.arctan2(p[keep, 1], p[keep, 0])
+        b = np.clip(((az + np.pi) / (2 * np.pi) * B).astype(np.int64), 0, B - 1)
+        rr = np.minimum(r[keep], params.max_range_m)
+        np.minimum.at(prof, b, rr)
+        known[b] = True
+    return prof, known
+
+
+@dataclass
+class PriorMatch:
+    """Every cell's best agreement with one scan: ``cost`` (mean squared difference of the encoded
+    profiles over the scan's known bins, lower is better), ``yaw`` of the sensor at the best shift, and
+    ``known_bins`` (how many bins the scan could compare)."""
+
+    cost: np.ndarray  # (K,)
+    yaw: np.ndarray  # (K,) radians
+    known_bins: int
+
+
+class PlacePrior:
+    """Profiles rendered on a grid over the map's drivable area (see the module docstring).
+
+    Args:
+        xy: ``(K, 2)`` cell centres in the map frame.
+        profiles: ``(K, B)`` uint8 quantised ranges (``quant_m`` steps).
+        params: the :class:`PriorParams` they were rendered with.
+    """
+
+    def __init__(self, xy: np.ndarray, profiles: np.ndarray, params: PriorParams, *, build_s: float = 0.0):
+        self.xy = np.asarray(xy, np.float64).reshape(-1, 2)
+        self.profiles = np.asarray(profiles, np.uint8)
+        self.params = params
+        self.build_s = float(build_s)
+        if self.profiles.shape != (len(self.xy), params.bins) or len(self.xy) == 0:
+            raise InputError(f"place prior: {len(self.xy)} cells but profiles of shape {self.profiles.shape}")
+        enc = _encode(self.profiles.astype(np.float64) * params.quant_m)  # (K, B)
+        self._spec = np.fft.rfft(enc, axis=1)  # (K, B//2+1)
+        self._spec_sq = np.fft.rfft(enc * enc, axis=1)
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.xy.astype(np.float32).nbytes + self.profiles.nbytes)
+
+    # --- building -----------------------------------------------------------------------------------------
+
+    @classmethod
+    def build(
+        cls,
+        caster,
+        cells_xy: np.ndarray,
+        ground_z: np.ndarray,
+        params: PriorParams | None = None,
+        chunk: int = 2048,
+    ) -> PlacePrior:
+        """Render the profiles of the cells ``cells_xy`` ``(K, 2)`` (ground height ``ground_z`` ``(K,)``)
+        through ``caster`` (the map's mesh)."""
+        params = params or PriorParams()
+        params.check()
+        t0 = time.perf_counter()
+        xy = np.asarray(cells_xy, np.float64).reshape(-1, 2)
+        gz = np.asarray(ground_z, np.float64).reshape(-1)
+        B = params.bins
+        az = -np.pi + (np.arange(B) + 0.5) * (2 * np.pi / B)
+        dirs = np.column_stack([np.cos(az), np.sin(az), np.zeros(B)])  # (B, 3)
+        H = len(params.heights_m)
+        out = np.empty((len(xy), B), np.uint8)
+        for lo in range(0, len(xy), chunk):
+            c = xy[lo : lo + chunk]
+            k = len(c)
+            origins = np.empty((k, H, B, 3))
+            origins[..., 0] = c[:, None, None, 0]
+            origins[..., 1] = c[:, None, None, 1]
+            origins[..., 2] = gz[lo : lo + chunk, None, None] + np.asarray(params.heights_m)[None, :, None]
+            d = np.broadcast_to(dirs, (k, H, B, 3))
+            hits = caster.cast(
+                origins.reshape(-1, 3).astype(np.float32), d.reshape(-1, 3), params.max_range_m
+            )
+            r = (
+                np.where(np.isfinite(hits.ranges), hits.ranges, params.max_range_m)
+                .reshape(k, H, B)
+                .min(axis=1)
+            )
+            out[lo : lo + chunk] = np.clip(np.rint(r / params.quant_m), 0, 255).astype(np.uint8)
+        return cls(xy, out, params, build_s=time.perf_counter() - t0)
+
+    # --- matching ----------------------------------------------------------------------------------------
+
+    def match(self, profile: np.ndarray, known: np.ndarray) -> PriorMatch:
+        """Compare a scan's profile (:func:`scan_profile`) with every cell at every yaw."""
+        B = self.params.bins
+        q = _encode(np.asarray(profile, np.float64).reshape(B))
+        m = np.asarray(known, bool).reshape(B).astype(np.float64)
+        n = m.sum()
+        if n < 1:
+            return PriorMatch(np.full(len(self.xy), np.inf), np.zeros(len(self.xy)), 0)
+        # cost(s) = Σ_i m_i (q_i − c_{i+s})² / n, each sum a circular correlation over i
+        A1 = np.conj(np.fft.rfft(m * q))
+        A0 = np.conj(np.fft.rfft(m))
+        cross = np.fft.irfft(A1[None, :] * self._spec, n=B, axis=1)  # Σ m q c_{i+s}
+        sq = np.fft.irfft(A0[None, :] * self._spec_sq, n=B, axis=1)  # Σ m c²_{i+s}
+        cost = (float(np.sum(m * q * q)) - 2.0 * cross + sq) / n  # (K, B)
+        s = np.argmin(cost, axis=1)
+        rows = np.arange(len(cost))
+        c0 = cost[rows, s]
+        cm, cp = cost[rows, (s - 1) % B], cost[rows, (s + 1) % B]
+        den = cm - 2 * c0 + cp
+        frac = np.where(den > 1e-12, 0.5 * (cm - cp) / np.where(den > 1e-12, den, 1.0), 0.0)
+        yaw = (s + np.clip(frac, -0.5, 0.5)) * (2 * np.pi / B)
+        yaw = np.mod(yaw + np.pi, 2 * np.pi) - np.pi
+        return PriorMatch(np.maximum(c0, 0.0), yaw, int(n))
+
+    def candidates(
+        self, points: np.ndarray, sensor_height_m: float, top: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+        """The ``top`` best cells for a scan: ``(xy (T, 2), yaw (T,), cost (T,), known_bins)``, best first."""
+        prof, known = scan_profile(points, sensor_height_m, self.params)
+        mt = self.match(prof, known)
+        top = int(min(top, len(self.xy)))
+        idx = np.argpartition(mt.cost, top - 1)[:top]
+        idx = idx[np.argsort(mt.cost[idx], kind="stable")]
+        return self.xy[idx], mt.yaw[idx], mt.cost[idx], mt.known_bins
+
+    # --- files -------------------------------------------------------------------------------------------
+
+    def save(self, path: Path, key: str) -> None:
+        from rangemcl.atomic import atomic_write
+
+        meta = json.dumps(
+            {"version": PRIOR_VERSION, "key": key, "params": asdict(self.params), "build_s": self.build_s}
+        )
+        atomic_write(
+            Path(path),
+            lambda fh: np.savez_compressed(
+                fh, xy=self.xy.astype(np.float32), profiles=self.profiles, meta=np.array(meta)
+            ),
+        )
+
+    @classmethod
+    def load(cls, path: Path, key: str | None = None) -> PlacePrior | None:
+        """The prior in ``path``; ``None`` when it is missing, of another version or (given ``key``) of
+        another map or parameters (then it is rebuilt); a damaged file is an :class:`InputError`."""
+        path = Path(path)
+        if not path.is_file():
+            return None
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                meta = json.loads(str(z["meta"]))
+                if meta.get("version") != PRIOR_VERSION or (key is not None and meta.get("key") != key):
+                    return None
+                p = meta["params"]
+                params = PriorParams(
+                    **{**p, "heights_m": tuple(p["heights_m"]), "band_m": tuple(p["band_m"])}
+                )
+                return cls(z["xy"], z["profiles"], params, build_s=float(meta.get("build_s", 0.0)))
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            raise InputError(f"{path}: cannot read the place prior ({err}); delete it to rebuild") from None
+
+
+def prior_key(mesh_map, cells_xy: np.ndarray, params: PriorParams) -> str:
+    """What a stored prior must match: the map's mesh (size, triangle count, extent), the cells, the
+    parameters."""
+    h = hashlib.sha1()
+    h.update(
+        repr((len(mesh_map.vertices), len(mesh_map.faces), tuple(np.round(mesh_map.extent, 3)))).encode()
+    )
+    h.update(np.ascontiguousarray(np.round(cells_xy, 3)).tobytes())
+    h.update(repr(asdict(params)).encode())
+    return h.hexdigest()[:20]
+
+
+def grid_cells(corners: np.ndarray, cell_m: float, grid_m: float) -> np.ndarray:
+    """Centres of a ``grid_m`` grid covering the drivable cells (lower-left ``corners`` of ``cell_m``)."""
+    c = np.asarray(corners, np.float64) + 0.5 * cell_m
+    ij = np.unique(np.floor(c / grid_m).astype(np.int64), axis=0)
+    return (ij + 0.5) * grid_m
+
+
+def load_or_build(
+    mesh_map, caster, area_corners: np.ndarray, area_cell_m: float, params: PriorParams | None = None
+):
+    """The map's place prior: read from the map folder when one matches, else rendered (and written
+    there when the folder is writable). Returns ``(prior, how)`` with how in ``loaded | built | built
+    (not saved: ...)``."""
+    params = params or PriorParams()
+    params.check()
+    xy = grid_cells(area_corners, area_cell_m, params.cell_m)
+    key = prior_key(mesh_map, xy, params)
+    src = getattr(mesh_map, "source_dir", None)
+    path = None if src is None else Path(src) / PRIOR_FILE
+    if path is not None:
+        prior = PlacePrior.load(path, key)
+        if prior is not None:
+            return prior, "loaded"
+    gz = mesh_map.ground.height_at(xy[:, 0], xy[:, 1])
+    prior = PlacePrior.build(caster, xy, gz, params)
+    how = "built"
+    if path is not None:
+        try:
+            prior.save(path, key)
+        except (OSError, InputError) as err:
+            how = f"built (not saved: {err})"
+    return prior, how
+
+
+def circular_distance_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Absolute angle difference in degrees, wrapped."""
+    d = np.mod(np.asarray(a) - np.asarray(b) + math.pi, 2 * math.pi) - math.pi
+    return np.degrees(np.abs(d))

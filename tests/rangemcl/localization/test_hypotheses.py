@@ -1,0 +1,211 @@
+"""Hypotheses of the global search: clustering, evidence-preserving resampling, the KLD bound; and, through
+the filter, convergence refused while two identical streets are equally good and granted once the drive
+tells them apart; a removed object in the map does not make the filter declare itself lost."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from rangemcl import meshgen
+from rangemcl.localization.hypotheses import (
+    ConvergenceTest,
+    allocate,
+    cluster_labels,
+    kld_sample_size,
+    occupied_bins,
+    resample_by_cluster,
+    summarize,
+)
+from rangemcl.mapping.meshmap import MeshMap
+from rangemcl.mcl import LocalizerSettings, MonteCarloLocalizer, ObservationSettings, se2_between
+from rangemcl.rangeimage import RangeImageGeometry
+from rangemcl.raycast import RayCaster
+from rangemcl.sensors import load_spec
+
+HEIGHT = 1.73
+
+
+def test_clusters_are_connected_groups_of_cells():
+    rng = np.random.default_rng(0)
+    a = rng.normal([0, 0], 0.5, (50, 2))
+    b = rng.normal([30, 5], 0.5, (40, 2))
+    chain = np.column_stack([np.arange(100, 130, 1.5), np.full(20, -40.0)])  # touching cells: one cluster
+    labels, n = cluster_labels(np.vstack([a, b, chain]), 3.0)
+    assert n == 3
+    assert len(set(labels[:50])) == 1 and len(set(labels[50:90])) == 1 and len(set(labels[90:])) == 1
+    assert len({labels[0], labels[50], labels[90]}) == 3
+    assert cluster_labels(np.zeros((0, 2)), 3.0)[1] == 0
+
+
+def test_resampling_by_cluster_keeps_each_clusters_share_and_a_minimum_of_copies():
+    rng = np.random.default_rng(1)
+    p = np.vstack([rng.normal([0, 0, 0], 0.3, (300, 3)), rng.normal([50, 0, 1], 0.3, (300, 3))])
+    w = np.concatenate([np.full(300, 0.999 / 300), np.full(300, 0.001 / 300)])
+    labels, n = cluster_labels(p[:, :2], 3.0)
+    hyps = summarize(p, w, labels, n)
+    assert [round(h.share, 6) for h in hyps] == [0.999, 0.001]
+    parts, logw, origin = resample_by_cluster(p, w, labels, hyps, 200, 25, rng)
+    share = np.bincount(origin, weights=np.exp(logw))
+    assert share == pytest.approx([0.999, 0.001])  # evidence carried, not sampled away
+    assert np.bincount(origin).tolist() == [175, 25]  # the runner-up keeps its minimum
+    assert np.all(parts[origin == 1, 0] > 40)
+
+
+def test_allocation_and_kld_bound():
+    assert allocate(np.array([0.7, 0.2, 0.1]), 100, 10).tolist() == [59, 24, 17]  # 10 each + 70 split 49:14:7
+    assert allocate(np.array([0.5, 0.5]), 5, 10).tolist() == [10, 10]
+    sizes = [kld_sample_size(k) for k in (1, 2, 10, 100, 1000)]
+    assert sizes == sorted(sizes) and sizes[0] == 1 and 9000 < sizes[-1] < 13000
+    p = np.array([[0.1, 0.1, 0.0], [0.2, 0.3, 0.01], [5.0, 0.0, 0.0], [0.1, 0.1, 3.0]])
+    assert occupied_bins(p, 1.0, 10.0) == 3
+
+
+def test_convergence_test_needs_margin_distance_and_a_compact_leader():
+    from rangemcl.localization.hypotheses import Hypothesis
+
+    def h(share, r=1.0):
+        return Hypothesis(0, share, math.log(share), 10, np.zeros(3), r)
+
+    t = ConvergenceTest(margin_nats=5.0, min_distance_m=4.0, compact_radius_m=3.0)
+    assert not t.update([h(0.5), h(0.5)], True, 10.0)  # a tie: never
+    t.reset()
+    assert not t.update([h(0.999), h(0.001)], True, 2.0)  # decisive, but not driven far enough
+    assert t.update([h(0.999), h(0.001)], True, 2.5)
+    assert not t.update([h(0.999), h(0.001)], False, 5.0)  # a new leader starts over
+    assert not t.update([h(1.0, r=8.0)], True, 10.0)  # alone but spread out
+
+
+# ---------------------------------------------------------------------------------------------- filter level
+
+
+def street(x0: float, y0: float, marker: bool, rng_seed: int = 3):
+    """A 160 m street along x at ``y0``: the same irregular buildings on both sides every time (the same
+    seed), and with ``marker`` a block standing in the road's verge at x0 + 95 m that only this copy has."""
+    rng = np.random.default_rng(rng_seed)
+    parts = []
+    x = x0 - 10.0
+    while x < x0 + 150.0:
+        for side in (-1.0, 1.0):
+            length, depth, height = rng.uniform(6, 14), rng.uniform(6, 10), rng.uniform(4, 12)
+            setback = rng.uniform(7.0, 10.0)
+            parts.append(
+                meshgen.box(
+                    (length, depth, height),
+                    (x + length / 2, y0 + side * (setback + depth / 2), height / 2 - 0.5),
+                    cell_m=3.0,
+                )
+            )
+        x += rng.uniform(14.0, 22.0)
+    if marker:
+        parts.append(meshgen.box((8.0, 2.5, 4.0), (x0 + 95.0, y0 + 5.5, 1.5), cell_m=2.0))
+    return parts
+
+
+@pytest.fixture(scope="module")
+def twin_streets():
+    ground = meshgen.grid_patch((-40.0, -40.0, 0.0), (260.0, 0, 0), (0, 200.0, 0), 65, 50)
+    parts = [ground, *street(0.0, 0.0, marker=True), *street(0.0, 100.0, marker=False)]
+    v, f = meshgen.merge(parts)
+    caster = RayCaster(threads=2)
+    caster.add_mesh(v, f, name="twins")
+    m = MeshMap.from_mesh(v, f, tile_size_m=50.0, meta={"sensor_height_m": HEIGHT})
+    xs = np.arange(-5.0, 150.0, 1.0)
+    m.drive_xy = np.vstack(
+        [np.column_stack([xs, np.zeros_like(xs)]), np.column_stack([xs, np.full_like(xs, 100.0)])]
+    )
+    return caster, m
+
+
+def twin_settings() -> LocalizerSettings:
+    s = LocalizerSettings()
+    s.particles.global_count = 2000
+    s.particles.converged_count = 60
+    s.observation = ObservationSettings(rays=200, max_range_m=40.0)
+    s.init.drive_radius_m = 3.0
+    return s
+
+
+def scan_at(caster, geo, pose):
+    x, y, yaw = pose
+    c, s = math.cos(yaw), math.sin(yaw)
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    d = geo.directions.reshape(-1, 3)
+    hits = caster.cast(np.array([x, y, HEIGHT]), d @ R.T, 40.0)
+    return (d[hits.hit] * hits.ranges[hits.hit, None]).astype(np.float32)
+
+
+def test_convergence_is_refused_between_identical_streets_and_granted_once_they_differ(twin_streets):
+    caster, m = twin_streets
+    geo = RangeImageGeometry.for_spec(load_spec("vlp-16").with_columns(360))
+    path = np.column_stack([np.arange(0.0, 120.0, 0.8), np.zeros(150), np.zeros(150)])  # along street A
+    loc = MonteCarloLocalizer(m, twin_settings(), seed=4, caster=caster)
+    loc.spread()
+    converged_at, on_b = None, 0
+    for k in range(len(path)):
+        delta = se2_between(path[k - 1], path[k]) if k else np.zeros(3)
+        info = loc.step(delta, scan_at(caster, geo, path[k]))
+        if not info.converged and info.hypotheses:
+            on_b = max(on_b, sum(h.share for h in loc.hypotheses if h.centroid[1] > 50.0))
+        if info.converged_now:
+            converged_at = k
+            break
+    assert converged_at is not None
+    # refused while both streets were alike: the marker at x = 95 m enters the 40 m range near x = 55 m
+    assert path[converged_at, 0] > 50.0, path[converged_at]
+    assert on_b > 0.1  # street B really was a contender meanwhile
+    assert abs(loc.estimate()[1]) < 1.0 and abs(loc.estimate()[0] - path[converged_at, 0]) < 1.0
+
+
+def test_a_removed_object_in_the_map_does_not_make_the_filter_lost():
+    # the map holds a row of parked cars along the street that the drive no longer sees
+    parts = [
+        meshgen.grid_patch((-20.0, -30.0, 0.0), (160.0, 0, 0), (0, 60.0, 0), 40, 15),
+        *street(0.0, 0.0, False),
+    ]
+    cars = [meshgen.box((4.5, 1.9, 1.5), (x, -4.5, 0.75), cell_m=1.0) for x in np.arange(2.0, 120.0, 6.0)]
+    cars += [meshgen.box((4.5, 1.9, 1.5), (x, 4.5, 0.75), cell_m=1.0) for x in np.arange(5.0, 120.0, 6.0)]
+    v_world, f_world = meshgen.merge(parts)
+    v_map, f_map = meshgen.merge(parts + cars)
+    world = RayCaster(threads=2)
+    world.add_mesh(v_world, f_world, name="world")
+    m = MeshMap.from_mesh(v_map, f_map, tile_size_m=50.0, meta={"sensor_height_m": HEIGHT})
+    geo = RangeImageGeometry.for_spec(load_spec("hdl-64e").with_columns(360))
+    path = np.column_stack([np.arange(0.0, 100.0, 0.8), np.zeros(125), np.zeros(125)])
+    s = twin_settings()
+    loc = MonteCarloLocalizer(m, s, seed=5)
+    loc.start_at(path[0])
+    rng = np.random.default_rng(6)
+    est, inliers = [], []
+    for k in range(len(path)):
+        delta = se2_between(path[k - 1], path[k]) if k else np.zeros(3)
+        info = loc.step(delta + rng.normal(0, [0.01, 0.003, 0.002]) * (k > 0), scan_at(world, geo, path[k]))
+        assert not info.recovered, f"false alarm at frame {k}"
+        est.append(info.estimate)
+        inliers.append(info.inliers)
+    err = np.hypot(*(np.array(est)[:, :2] - path[:, :2]).T)
+    assert err.max() < 0.5
+    # the cars really were there to be missed: many rays read longer than the map
+    loc.model.set_scan(*_rays(loc, scan_at(world, geo, path[60])))
+    beyond = loc.model.scores(path[60][None], loc.sensor_z(path[60][None, :2]))["beyond"][0]
+    assert beyond > 0.1
+
+
+def _rays(loc, points):
+    r = np.linalg.norm(points, axis=1)
+    ok = (r > 2.0) & (r < 40.0)
+    return points[ok] / r[ok, None], r[ok]
+
+
+def test_a_satellite_of_the_leader_is_no_rival():
+    from rangemcl.localization.hypotheses import Hypothesis
+
+    def h(share, x):
+        return Hypothesis(0, share, math.log(share), 10, np.array([x, 0.0, 0.0]), 1.0)
+
+    t = ConvergenceTest(margin_nats=5.0, min_distance_m=0.0, compact_radius_m=3.0, separation_m=5.0)
+    assert t.update([h(0.7, 0.0), h(0.29, 4.0), h(0.001, 40.0)], True, 1.0)  # 4 m behind: same place
+    assert t.margin == pytest.approx(math.log(0.7 / 0.001))
+    assert not t.update([h(0.7, 0.0), h(0.29, 6.0), h(0.001, 40.0)], True, 1.0)  # 6 m: a rival

@@ -1,0 +1,145 @@
+"""The place prior: the yaw search recovers a known rotation to one bin, the FFT matching equals a direct
+search over every shift, the true cell ranks first in a synthetic town of distinct places, and the prior
+is stored in the map folder and rebuilt when the map changes."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from rangemcl import meshgen
+from rangemcl.errors import InputError
+from rangemcl.localization.place_prior import (
+    PRIOR_FILE,
+    PlacePrior,
+    PriorParams,
+    circular_distance_deg,
+    grid_cells,
+    load_or_build,
+    scan_profile,
+)
+from rangemcl.mapping.meshmap import MeshMap
+from rangemcl.rangeimage import RangeImageGeometry
+from rangemcl.raycast import RayCaster
+from rangemcl.sensors import load_spec
+
+HEIGHT = 1.73
+
+
+@pytest.fixture(scope="module")
+def town():
+    t = meshgen.town(seed=11, size_m=100.0, n_buildings=18, n_poles=25, facade_cell_m=2.0, ground_cell_m=2.0)
+    v, f = t.merged()
+    caster = RayCaster(threads=2)
+    caster.add_mesh(v, f, name="town")
+    m = MeshMap.from_mesh(v, f, tile_size_m=50.0, meta={"sensor_height_m": HEIGHT})
+    # the cells along the roads (where a car drives), every 2 m
+    along = np.arange(-47.0, 47.0, 2.0) + 1.0
+    cells = np.unique(
+        np.vstack(
+            [
+                np.column_stack([along, np.full_like(along, r + o)])
+                for r in t.road_xy
+                for o in (-3.0, -1.0, 1.0, 3.0)
+            ]
+            + [
+                np.column_stack([np.full_like(along, r + o), along])
+                for r in t.road_xy
+                for o in (-3.0, -1.0, 1.0, 3.0)
+            ]
+        ),
+        axis=0,
+    )
+    prior = PlacePrior.build(caster, cells, m.ground.height_at(cells[:, 0], cells[:, 1]))
+    return t, caster, m, prior
+
+
+def scan(t, caster, x, y, yaw, sensor="os1-64", columns=720):
+    geo = RangeImageGeometry.for_spec(load_spec(sensor).with_columns(columns))
+    z = float(t.ground_height(x, y)) + HEIGHT
+    c, s = math.cos(yaw), math.sin(yaw)
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    d = geo.directions.reshape(-1, 3)
+    hits = caster.cast(np.array([x, y, z]), d @ R.T, 80.0)
+    return d[hits.hit] * hits.ranges[hits.hit, None]
+
+
+def test_fft_matching_equals_a_direct_search_over_every_shift():
+    rng = np.random.default_rng(0)
+    params = PriorParams(bins=72)
+    profiles = rng.integers(10, 240, (30, 72)).astype(np.uint8)
+    prior = PlacePrior(rng.uniform(0, 50, (30, 2)), profiles, params)
+    q = rng.uniform(2.0, 30.0, 72)
+    known = rng.uniform(size=72) < 0.6
+    m = prior.match(q, known)
+    enc_q = np.log1p(q)
+    enc_c = np.log1p(profiles * params.quant_m)
+    for k in range(30):
+        costs = [np.mean((enc_q - np.roll(enc_c[k], -s))[known] ** 2) for s in range(72)]
+        assert m.cost[k] == pytest.approx(min(costs), abs=1e-9)
+        s_best = int(np.argmin(costs))
+        assert circular_distance_deg(m.yaw[k], s_best * 2 * math.pi / 72) <= 0.5 * 360 / 72 + 1e-9
+
+
+def test_yaw_search_recovers_a_known_rotation_to_one_bin(town):
+    t, caster, _m, prior = town
+    rng = np.random.default_rng(1)
+    step = 360.0 / prior.params.bins
+    for k in rng.choice(len(prior.xy), 8, replace=False):
+        x, y = prior.xy[k]
+        yaw = rng.uniform(-math.pi, math.pi)
+        prof, known = scan_profile(scan(t, caster, x, y, yaw), HEIGHT, prior.params)
+        got = prior.match(prof, known).yaw[k]
+        assert circular_distance_deg(got, yaw) <= step  # to one column of the 360-bin profile
+
+
+def test_true_cell_ranks_first_in_a_town_of_distinct_places(town):
+    t, caster, _m, prior = town
+    rng = np.random.default_rng(2)
+    ranks = []
+    for sensor in ("vlp-16", "hdl-64e", "mq-8"):
+        for k in rng.choice(len(prior.xy), 6, replace=False):
+            x, y = prior.xy[k]
+            pts = scan(t, caster, x, y, rng.uniform(-math.pi, math.pi), sensor)
+            prof, known = scan_profile(pts, HEIGHT, prior.params)
+            cost = prior.match(prof, known).cost
+            ranks.append(int((cost < cost[k]).sum()))
+    # the true cell first for (nearly) every scan, and never outside the best 1 % of the cells
+    assert np.mean(np.array(ranks) == 0) >= 0.85, ranks
+    assert max(ranks) <= 0.01 * len(prior.xy), ranks
+
+
+def test_profile_of_a_scan_keeps_only_the_height_band_and_marks_empty_bins():
+    p = PriorParams(bins=4)
+    pts = np.array(
+        [
+            [5.0, 0.0, -1.73 + 1.0],  # 1 m above the ground, straight ahead: kept (bin 2 of 4: 0..90 deg)
+            [3.0, 0.0, -1.73 + 0.1],  # road: dropped
+            [-8.0, 0.1, -1.73 + 1.5],  # behind (bin 3, just below 180 deg): kept
+            [0.0, -6.0, -1.73 + 3.0],  # too high: dropped
+        ]
+    )
+    prof, known = scan_profile(pts, 1.73, p)
+    assert known.tolist() == [False, False, True, True]
+    assert prof[2] == pytest.approx(5.0) and prof[3] == pytest.approx(math.hypot(8.0, 0.1))
+    assert prof[0] == p.max_range_m
+
+
+def test_prior_is_stored_in_the_map_folder_and_rebuilt_when_the_map_changes(town, tmp_path):
+    _t, caster, m, _ = town
+    m.save(tmp_path / "map")
+    loaded = MeshMap.load(tmp_path / "map")
+    corners = np.array([[0.0, -27.0], [10.0, -27.0], [20.0, 23.0]])
+    p1, how1 = load_or_build(loaded, caster, corners, 1.0)
+    assert how1 == "built" and (tmp_path / "map" / PRIOR_FILE).is_file()
+    p2, how2 = load_or_build(loaded, caster, corners, 1.0)
+    assert how2 == "loaded" and np.array_equal(p1.profiles, p2.profiles)
+    assert np.allclose(p1.xy, grid_cells(corners, 1.0, 2.0))
+    # other cells (another drivable area, another map) do not match the stored key
+    _, how3 = load_or_build(loaded, caster, corners[:2], 1.0)
+    assert how3 == "built"
+    (tmp_path / "map" / PRIOR_FILE).write_bytes(b"not a zip")
+    with pytest.raises(InputError, match="place prior"):
+        load_or_build(loaded, caster, corners, 1.0)
