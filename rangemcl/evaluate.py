@@ -21,7 +21,7 @@ import numpy as np
 
 from rangemcl.dataset import read_poses_txt
 from rangemcl.errors import InputError
-from rangemcl.particles import pose2d, wrap_angle
+from rangemcl.se2 import pose2d, wrap_angle
 
 
 def pose_errors(estimate_xyyaw: np.ndarray, truth_xyyaw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -129,7 +129,7 @@ def convergence_events(
 
 
 def xyyaw_of(poses: np.ndarray) -> np.ndarray:
-    """``(N, 3)`` x, y, yaw of ``(N, 4, 4)`` poses."""
+    """``(N, 3)`` x, y, yaw of ``(N, 4, 4)`` poses (:func:`rangemcl.se2.pose2d` of each)."""
     return np.array([pose2d(T) for T in np.asarray(poses, np.float64)]).reshape(-1, 3)
 
 

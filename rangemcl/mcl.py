@@ -45,12 +45,11 @@ from rangemcl.particles import (
     effective_sample_size,
     low_variance_resample,
     normalize_log_weights,
-    odometry_increment,
     pose_estimate,
     sample_motion,
-    wrap_angle,
 )
 from rangemcl.raycast import RayCaster
+from rangemcl.se2 import odometry_increment, rotation_roll_pitch, se2_between, se2_compose, wrap_angle
 
 # ---------------------------------------------------------------------------------------------- settings
 
@@ -85,9 +84,12 @@ class ObservationSettings:
     model: str = "range"  # range (paper Eq. 5) | overlap | likelihood_field | histogram (rangemcl.models)
     sigma_m: float = 0.25  # σ_d of Eq. 5 (paper 5.0, reference code 2.0; chosen by measurement, README)
     rays: int = 500  # measured points cast per particle (a random subset of the valid ones) ...
-    ray_sampling: str = "points"  # ... each valid point alike (points) or each elevation band alike
+    ray_sampling: str = "points"  # ... each valid point alike (points), each elevation band alike
     # (elevation: 2-degree bands of the sensor's vertical field, so that a sensor whose beams crowd the
-    # road near the car still sends rays to what lies farther and higher)
+    # road near the car still sends rays to what lies farther and higher), or structure: at most
+    # ground_share of the rays from the road (points within 0.5 m of the sensor's ground), the rest from
+    # what stands on it, each part evenly over the elevation bands
+    ground_share: float = 0.2  # ray_sampling structure: the road's share of the rays
     margin_m: float = 2.0  # rays end at measured range + margin; a miss counts as the margin
     cap_m: float | None = 1.0  # residual cap (the robust variant); None: the paper's plain mean
     cap_beyond_m: float | None = 0.5  # cost of a ray measured more than cap_m longer than the map's
@@ -263,47 +265,15 @@ class LocalizerSettings:
             raise InputError(
                 f"{where}: observation.model {o.model!r}: expected one of {', '.join(MODEL_NAMES)}"
             )
-        if o.ray_sampling not in ("points", "elevation"):
+        if o.ray_sampling not in RAY_SAMPLINGS:
             raise InputError(
-                f"{where}: observation.ray_sampling {o.ray_sampling!r}: expected 'points' or 'elevation'"
+                f"{where}: observation.ray_sampling {o.ray_sampling!r}: "
+                f"expected one of {', '.join(RAY_SAMPLINGS)}"
             )
+        if not 0 <= o.ground_share <= 1:
+            raise InputError(f"{where}: observation.ground_share must be in [0, 1], got {o.ground_share}")
         if o.min_range_m >= o.max_range_m:
             raise InputError(f"{where}: observation.min_range_m must be below observation.max_range_m")
-
-
-# ---------------------------------------------------------------------------------------------- SE(2) helpers
-
-
-def se2_compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a ⊕ b``: pose ``b`` (given in the frame of ``a``) in the frame ``a`` is given in; ``(..., 3)``."""
-    a = np.asarray(a, np.float64)
-    b = np.asarray(b, np.float64)
-    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    return np.stack(
-        [
-            a[..., 0] + c * b[..., 0] - s * b[..., 1],
-            a[..., 1] + s * b[..., 0] + c * b[..., 1],
-            wrap_angle(a[..., 2] + b[..., 2]),
-        ],
-        axis=-1,
-    )
-
-
-def se2_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a⁻¹ ⊕ b``: pose ``b`` expressed in the frame of pose ``a``."""
-    a = np.asarray(a, np.float64)
-    b = np.asarray(b, np.float64)
-    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
-    return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[..., 2] - a[..., 2])], axis=-1)
-
-
-def rotation_roll_pitch(roll: float, pitch: float) -> np.ndarray:
-    """``Ry(pitch) · Rx(roll)``: the sensor's attitude without its yaw (``R = Rz Ry Rx``)."""
-    cr, sr, cp, sp = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)
-    rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
-    return ry @ rx
 
 
 # ---------------------------------------------------------------------------------------------- scan rays
@@ -320,6 +290,7 @@ class ScanRays:
     structure: np.ndarray | None = None  # (R,) bool: met something above the ground (set by the filter)
 
 
+RAY_SAMPLINGS = ("points", "elevation", "structure")
 ELEVATION_BAND_DEG = 2.0  # observation.ray_sampling "elevation": the bands sampled alike
 STRUCTURE_M = 0.5  # a ray whose point lies this far above the sensor's ground met structure, not road
 
@@ -333,6 +304,7 @@ def prepare_rays(
     frame_period_s: float | None = None,
     frame_motion: np.ndarray | None = None,
     roll_pitch: tuple[float, float] | None = None,
+    sensor_height_m: float = 1.73,
 ) -> ScanRays | None:
     """Pick, de-skew and level the rays of one scan; ``None`` when it has no valid point.
 
@@ -349,10 +321,23 @@ def prepare_rays(
         return None
     if len(idx) > settings.rays:
         weight = None
-        if settings.ray_sampling == "elevation":
-            band = np.floor(np.degrees(np.arcsin(p[idx, 2] / r[idx])) / ELEVATION_BAND_DEG).astype(np.int64)
-            _, inverse, counts = np.unique(band, return_inverse=True, return_counts=True)
-            weight = 1.0 / counts[inverse]
+        if settings.ray_sampling in ("elevation", "structure"):
+            key = np.floor(np.degrees(np.arcsin(p[idx, 2] / r[idx])) / ELEVATION_BAND_DEG).astype(np.int64)
+            part = np.zeros(len(idx), np.int64)
+            part_share = np.array([1.0, 0.0])
+            if settings.ray_sampling == "structure":
+                # height above the sensor's ground (levelled enough: a car's roll and pitch are small)
+                part = (p[idx, 2] + sensor_height_m < STRUCTURE_M).astype(np.int64)  # 1: road
+                if 0 < part.sum() < len(part):
+                    part_share = np.array([1.0 - settings.ground_share, settings.ground_share])
+                else:
+                    part[:] = 0
+            _, inverse, counts = np.unique(key * 2 + part, return_inverse=True, return_counts=True)
+            group_part = np.zeros(len(counts), np.int64)
+            group_part[inverse] = part
+            groups_in_part = np.bincount(group_part, minlength=2)
+            # each part its share, split evenly over its elevation bands, each band's points alike
+            weight = part_share[part] / groups_in_part[part] / counts[inverse]
             weight /= weight.sum()
         # sorted: the rays keep sweep order, which keeps them coherent in memory
         idx = np.sort(rng.choice(idx, settings.rays, replace=False, p=weight))
@@ -613,6 +598,7 @@ class MonteCarloLocalizer:
                     frame_period_s=frame_period_s,
                     frame_motion=delta,
                     roll_pitch=roll_pitch,
+                    sensor_height_m=self.sensor_height_m,
                 )
             self._move()
             if rays is None:

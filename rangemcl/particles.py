@@ -1,6 +1,7 @@
 """Particle-filter arithmetic over ``(x, y, yaw)`` particles: the odometry motion model, log-weights,
 low-variance resampling and circular pose estimates. Pure numpy functions; all randomness comes from the
-generator passed in.
+generator passed in. The pose math they build on (angle wrapping, circular means, odometry increments)
+lives in :mod:`rangemcl.se2` and is re-exported here.
 
 Particles are ``(N, 3)`` float64 arrays ``(x, y, yaw)`` with yaw wrapped to (−π, π].
 """
@@ -11,27 +12,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-
-def wrap_angle(a):
-    """Angles wrapped to (−π, π]."""
-    a = np.asarray(a, dtype=np.float64)
-    w = np.mod(a + np.pi, 2 * np.pi) - np.pi  # [−π, π)
-    return np.where(w == -np.pi, np.pi, w)
-
-
-def pose2d(T: np.ndarray) -> np.ndarray:
-    """``(x, y, yaw)`` of a 4×4 pose (its projection onto the ground plane)."""
-    T = np.asarray(T, dtype=np.float64)
-    return np.array([T[0, 3], T[1, 3], float(np.arctan2(T[1, 0], T[0, 0]))])
-
-
-def odometry_increment(prev: np.ndarray, cur: np.ndarray) -> tuple[float, float, float]:
-    """``(rot1, trans, rot2)`` of the standard odometry motion model between two ``(x, y, yaw)`` poses."""
-    dx, dy = cur[0] - prev[0], cur[1] - prev[1]
-    trans = float(np.hypot(dx, dy))
-    rot1 = float(wrap_angle(np.arctan2(dy, dx) - prev[2])) if trans > 1e-9 else 0.0
-    rot2 = float(wrap_angle(cur[2] - prev[2] - rot1))
-    return rot1, trans, rot2
+# the pose math lives in rangemcl.se2; these names stay importable from here too
+from rangemcl.se2 import circular_mean as circular_mean
+from rangemcl.se2 import odometry_increment as odometry_increment
+from rangemcl.se2 import pose2d as pose2d
+from rangemcl.se2 import wrap_angle as wrap_angle
 
 
 @dataclass
@@ -92,13 +77,6 @@ def low_variance_resample(weights: np.ndarray, rng: np.random.Generator, n: int 
     cumulative = np.cumsum(w)
     cumulative[-1] = 1.0  # guard against rounding
     return np.searchsorted(cumulative, positions, side="right").clip(0, len(w) - 1)
-
-
-def circular_mean(angles: np.ndarray, weights: np.ndarray | None = None) -> float:
-    """Weighted mean direction of angles (through the unit vectors, so it is right across ±π)."""
-    a = np.asarray(angles, dtype=np.float64)
-    w = np.ones_like(a) if weights is None else np.asarray(weights, dtype=np.float64)
-    return float(wrap_angle(np.arctan2(np.sum(w * np.sin(a)), np.sum(w * np.cos(a)))))
 
 
 def pose_estimate(particles: np.ndarray, weights: np.ndarray, best_share: float = 0.8) -> np.ndarray:

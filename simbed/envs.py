@@ -34,9 +34,8 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from rangemcl.mcl import se2_between
-from rangemcl.particles import pose2d
 from rangemcl.rangeimage import RangeImageGeometry
+from rangemcl.se2 import pose2d, se2_between, wrap_angle
 from rangemcl.sensors import load_spec
 from simbed.routes import distance_to_roads, make_route
 from simbed.sim import Drive, Frame
@@ -179,7 +178,7 @@ class LocalizationTrialEnv(_SimEnv):
         }
         if estimate is not None:
             err = float(np.hypot(*(estimate[:2] - truth[:2])))
-            yaw = abs((float(estimate[2]) - truth[2] + math.pi) % (2 * math.pi) - math.pi)
+            yaw = abs(float(wrap_angle(float(estimate[2]) - truth[2])))
             info.update(position_error_m=err, yaw_error_deg=math.degrees(yaw))
         return info
 

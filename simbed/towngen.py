@@ -50,6 +50,7 @@ import numpy as np
 import yaml
 
 from rangemcl.errors import InputError
+from rangemcl.se2 import wrap_angle
 
 ROAD_WIDTH_M = 8.0
 LANE_WIDTH_M = 3.5
@@ -727,7 +728,7 @@ class _Planner:
             s0 = (length - (count - 1) * PARK_PITCH_M) / 2
             for side in (1.0, -1.0):
                 heading = yaw if side < 0 else yaw + math.pi  # right-hand traffic
-                heading = math.atan2(math.sin(heading), math.cos(heading))
+                heading = float(wrap_angle(heading))
                 for i in range(count):
                     xy = a + u * (s0 + i * PARK_PITCH_M) + side * n * PARK_OFFSET_M
                     if self._road_distance(xy, heading, (2.6, 1.0), skip=e) < ROAD_WIDTH_M / 2 + 0.5:

@@ -10,15 +10,12 @@ import mujoco
 import numpy as np
 
 from rangemcl.errors import InputError
+from rangemcl.se2 import pose2d, pose_matrix, wrap_angle
 from simbed.routes import Route
 
 STEER_ACTUATORS = ("steer_fl", "steer_fr")
 DRIVE_ACTUATORS = ("drive_rl", "drive_rr")
 REAR_WHEEL_JOINTS = ("wheel_rl", "wheel_rr")
-
-
-def yaw_of(R: np.ndarray) -> float:
-    return float(np.arctan2(R[1, 0], R[0, 0]))
 
 
 def roll_pitch_of(R: np.ndarray) -> tuple[float, float]:
@@ -158,7 +155,7 @@ class RouteFollower:
     def control(self, data: mujoco.MjData, dt: float) -> None:
         """Set the car's actuator controls for the next physics step."""
         T = self.car.pose(data)
-        xy, yaw = T[:2, 3], yaw_of(T[:3, :3])
+        xy, yaw = T[:2, 3], float(pose2d(T)[2])
         self._advance(xy)
         self._time += dt
         if self.progress_m > self._progress_mark[1] + 1.0:
@@ -171,8 +168,7 @@ class RouteFollower:
         look = max(5.0, 0.9 * abs(speed))
         k = min(int(np.searchsorted(self.cumlen, self.cumlen[self.index] + look)), len(self.points) - 1)
         d = self.points[k] - xy
-        alpha = np.arctan2(d[1], d[0]) - yaw
-        alpha = (alpha + np.pi) % (2 * np.pi) - np.pi
+        alpha = wrap_angle(np.arctan2(d[1], d[0]) - yaw)
         dist = max(float(np.linalg.norm(d)), 1e-3)
         steer = np.arctan2(2.0 * self.car.wheelbase_m * np.sin(alpha), dist)
         steer = float(np.clip(steer, -self.car.max_steer_rad, self.car.max_steer_rad))
@@ -269,15 +265,11 @@ class WheelGyroOdometry:
         mid = self.yaw + dyaw / 2
         self.x += ds * np.cos(mid)
         self.y += ds * np.sin(mid)
-        self.yaw = float((self.yaw + dyaw + np.pi) % (2 * np.pi) - np.pi)
+        self.yaw = float(wrap_angle(self.yaw + dyaw))
 
     def pose(self) -> np.ndarray:
         """``T_odom_base`` (4×4, planar)."""
-        c, s = np.cos(self.yaw), np.sin(self.yaw)
-        T = np.eye(4)
-        T[:2, :2] = [[c, -s], [s, c]]
-        T[:2, 3] = (self.x, self.y)
-        return T
+        return pose_matrix(self.x, self.y, self.yaw)
 
     def imu_roll_pitch(self, data: mujoco.MjData) -> tuple[float, float]:
         roll, pitch = roll_pitch_of(self.car.pose(data)[:3, :3])

@@ -10,7 +10,13 @@ Embree ``RaycastingScene`` in the same run as the peer.
   ``--frames`` frames; per frame the whole step (scan read, de-skew, motion, weighting, resampling) is
   timed; the median gives the frame rate.
 * before convergence: ``--many`` particles (default 10,000) spread over the map, weighted on ``--global-
-  frames`` frames; median seconds per update.
+  frames`` frames; median seconds per update (the first update of a search: the place prior's match of
+  the scan, the prior's particles, the weighting and the hypothesis bookkeeping).
+* a whole global search: from frame 0 with ``--many`` particles until convergence (at most
+  ``--search-frames``); median and largest seconds per frame before convergence (the cloud shrinks as the
+  hypotheses thin out), the frame it converged at and its error then.
+* the place prior: rendered anew for the map (seconds), its size in memory and on disk, per km² of the
+  drivable area it covers.
 * peer: the same rays of the same particles cast by Embree (all cores) and reduced in numpy, on the same
   frames; ratio = Embree time / Warp time of the weighting (above 1: Warp is faster).
 
@@ -54,6 +60,7 @@ def main() -> None:
     ap.add_argument("--few", type=int, default=100)
     ap.add_argument("--many", type=int, default=10000)
     ap.add_argument("--global-frames", type=int, default=8)
+    ap.add_argument("--search-frames", type=int, default=80)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", help="also write the figures here")
@@ -149,6 +156,57 @@ def main() -> None:
         "weighting_median_s_embree": statistics.median(ge),
         "embree_over_warp": statistics.median(ge) / statistics.median(gw),
     }
+
+    # --- a whole global search from frame 0 ---------------------------------------------------------------
+    loc.spread(args.many)
+    search_s, conv_at, conv_err = [], None, None
+    for i in range(min(args.search_frames, len(seq))):
+        delta = se2_between(odo[i - 1], odo[i]) if i else np.zeros(3)
+        rp = tuple(seq.imu_roll_pitch[i]) if seq.imu_roll_pitch is not None else None
+        info = loc.step(
+            delta,
+            seq.scan(i),
+            fire_time_s=seq.point_meta(i).get("time_s"),
+            frame_period_s=period,
+            roll_pitch=rp,
+        )
+        if info.converged:
+            conv_at, conv_err = i, float(np.hypot(*(info.estimate[:2] - truth[i, :2])))
+            break
+        search_s.append(info.seconds)
+    search = {
+        "particles": args.many,
+        "seconds_per_frame_median": statistics.median(search_s) if search_s else None,
+        "seconds_per_frame_max": max(search_s) if search_s else None,
+        "converged_frame": conv_at,
+        "error_at_convergence_m": conv_err,
+    }
+
+    # --- the place prior: rendered anew ---------------------------------------------------------------------
+    import tempfile
+    from pathlib import Path
+
+    from rangemcl.localization.place_prior import PlacePrior, PriorParams, grid_cells
+
+    params = PriorParams(cell_m=settings.init.prior_cell_m)
+    cells = grid_cells(loc.init_cells.corners, loc.init_cells.cell_m, params.cell_m)
+    t0 = time.perf_counter()
+    prior = PlacePrior.build(loc.caster, cells, mesh_map.ground.height_at(cells[:, 0], cells[:, 1]), params)
+    build_s = time.perf_counter() - t0
+    with tempfile.TemporaryDirectory() as tmp:
+        prior.save(Path(tmp) / "p.npz", "bench")
+        disk = (Path(tmp) / "p.npz").stat().st_size
+    area_km2 = len(cells) * params.cell_m**2 / 1e6
+    prior_fig = {
+        "cells": len(cells),
+        "cell_m": params.cell_m,
+        "drivable_km2": area_km2,
+        "build_s": build_s,
+        "memory_mb": prior.nbytes / 1e6,
+        "disk_mb": disk / 1e6,
+        "memory_mb_per_km2": prior.nbytes / 1e6 / area_km2,
+        "build_s_per_km2": build_s / area_km2,
+    }
     out = {
         "device": loc.caster.device,
         "cores": os.cpu_count(),
@@ -156,6 +214,8 @@ def main() -> None:
         "map_triangles": mesh_map.n_triangles,
         "after_convergence": after,
         "before_convergence": before,
+        "global_search": search,
+        "place_prior": prior_fig,
     }
     print(
         f"device {out['device']}, {out['cores']} cores, {o.rays} rays per particle, "
@@ -172,6 +232,26 @@ def main() -> None:
         f"before convergence ({args.many:,} particles): {before['update_median_s_warp']:.2f} s per frame "
         f"(target <= 3 s; paper <= 56.7 s on a GTX 1080 Ti); Embree weighting "
         f"{before['weighting_median_s_embree']:.2f} s (Embree/Warp {before['embree_over_warp']:.2f})"
+    )
+    print(
+        f"global search ({args.many:,} particles, from frame 0): "
+        + (
+            f"{search['seconds_per_frame_median']:.2f} s per frame median, "
+            f"{search['seconds_per_frame_max']:.2f} s max before convergence; "
+            if search_s
+            else ""
+        )
+        + (
+            f"converged at frame {conv_at}, {conv_err:.2f} m off"
+            if conv_at is not None
+            else f"not converged in {args.search_frames} frames"
+        )
+    )
+    print(
+        f"place prior: {prior_fig['cells']:,} cells of {params.cell_m:g} m ({area_km2:.3f} km2 drivable), "
+        f"rendered in {build_s:.1f} s ({prior_fig['build_s_per_km2']:.0f} s per km2), "
+        f"{prior_fig['memory_mb']:.1f} MB in memory ({prior_fig['memory_mb_per_km2']:.0f} MB per km2), "
+        f"{prior_fig['disk_mb']:.1f} MB on disk"
     )
     if args.json:
         with open(args.json, "w") as fh:

@@ -33,7 +33,8 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from rangemcl.particles import circular_mean, low_variance_resample
+from rangemcl.particles import low_variance_resample
+from rangemcl.se2 import circular_mean
 
 
 def cluster_labels(xy: np.ndarray, cell_m: float) -> tuple[np.ndarray, int]:
@@ -195,7 +196,8 @@ class ConvergenceTest:
         rivals = [
             h
             for h in hyps[1:]
-            if math.hypot(h.centroid[0] - best.centroid[0], h.centroid[1] - best.centroid[1]) > self.separation_m
+            if math.hypot(h.centroid[0] - best.centroid[0], h.centroid[1] - best.centroid[1])
+            > self.separation_m
         ]
         self.margin = best.log_share - rivals[0].log_share if rivals else math.inf
         self.lead_distance_m = self.lead_distance_m + moved_m if same_leader else 0.0

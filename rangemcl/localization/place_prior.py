@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -37,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from rangemcl.errors import InputError
+from rangemcl.se2 import wrap_angle
 
 PRIOR_FILE = "place_prior.npz"
 PRIOR_VERSION = 1
@@ -190,7 +190,7 @@ class PlacePrior:
         den = cm - 2 * c0 + cp
         frac = np.where(den > 1e-12, 0.5 * (cm - cp) / np.where(den > 1e-12, den, 1.0), 0.0)
         yaw = (s + np.clip(frac, -0.5, 0.5)) * (2 * np.pi / B)
-        yaw = np.mod(yaw + np.pi, 2 * np.pi) - np.pi
+        yaw = wrap_angle(yaw)
         return PriorMatch(np.maximum(c0, 0.0), yaw, int(n))
 
     def candidates(
@@ -288,5 +288,4 @@ def load_or_build(
 
 def circular_distance_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Absolute angle difference in degrees, wrapped."""
-    d = np.mod(np.asarray(a) - np.asarray(b) + math.pi, 2 * math.pi) - math.pi
-    return np.degrees(np.abs(d))
+    return np.degrees(np.abs(wrap_angle(np.asarray(a) - np.asarray(b))))

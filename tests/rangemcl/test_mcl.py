@@ -403,3 +403,19 @@ def test_an_interrupted_run_keeps_what_it_computed(world, tmp_path, monkeypatch)
     assert len((out / "estimate_kitti.txt").read_text().splitlines()) == 12
     assert json.loads((out / "metrics.json").read_text())["frames"] == 12
     assert (out / "trajectory.png").is_file()
+
+
+def test_structure_sampling_caps_the_roads_share_of_the_rays():
+    rng = np.random.default_rng(0)
+    road = np.column_stack([rng.uniform(3, 20, 9000), rng.uniform(-5, 5, 9000), np.full(9000, -HEIGHT)])
+    wall = np.column_stack([np.full(1000, 15.0), rng.uniform(-5, 5, 1000), rng.uniform(-1.0, 3.0, 1000)])
+    pts = np.vstack([road, wall])
+    share = {}
+    for mode in ("points", "elevation", "structure"):
+        r = prepare_rays(pts, ObservationSettings(rays=500, ray_sampling=mode), rng, sensor_height_m=HEIGHT)
+        share[mode] = float(np.mean(r.directions[:, 2] * r.ranges + HEIGHT < 0.5))
+    assert share["points"] > 0.85  # drawn evenly over the points: mostly road
+    assert share["structure"] < 0.3 < share["elevation"] < share["points"]
+    # a scan of road alone still gives rays
+    only_road = prepare_rays(road, ObservationSettings(rays=100, ray_sampling="structure"), rng)
+    assert len(only_road.ranges) == 100

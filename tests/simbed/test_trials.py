@@ -10,7 +10,15 @@ from dataclasses import replace
 import pytest
 
 from rangemcl.errors import InputError
-from simbed.trials import SUITES, SuiteConfig, aggregate, run_suite, suite_settings, suite_trials
+from simbed.trials import (
+    LOCALIZER_REVISION,
+    SUITES,
+    SuiteConfig,
+    aggregate,
+    run_suite,
+    suite_settings,
+    suite_trials,
+)
 
 CONFIG = SuiteConfig(route="mapping", drive_frames=50, frames=30, actors=2, starts=2)
 
@@ -152,10 +160,13 @@ def test_suite_with_localizer_settings(tiny_map, tmp_path):
     cfg.write_text("observation:\n  ray_sampling: elevation\n  rays: 120\n")
     c = replace(CONFIG, settings=suite_settings(cfg))
     plain, tuned = suite_trials("runtime", True, CONFIG), suite_trials("runtime", True, c)
+    rev = f"-v{LOCALIZER_REVISION}"  # every key ends with the localizer's revision
+    assert all(a.key.endswith(rev) and b.key.endswith(rev) for a, b in zip(plain, tuned, strict=True))
     assert all(
-        re.fullmatch(re.escape(a.key) + "-c[0-9a-f]{8}", b.key) for a, b in zip(plain, tuned, strict=True)
+        re.fullmatch(re.escape(a.key[: -len(rev)]) + "-c[0-9a-f]{8}" + rev, b.key)
+        for a, b in zip(plain, tuned, strict=True)
     )
-    assert all(not a.key.rsplit("-", 1)[1].startswith("c") for a in plain)  # default keys unchanged
+    assert all("-c" not in a.key.rsplit("-", 2)[1] for a in plain)  # default keys carry no settings tag
     out = tmp_path / "rt"
     rows = run_suite("runtime", out, tiny_map, quick=True, config=c, workers=1, say=lambda _: None)
     assert [r["key"] for r in rows] == [t.key for t in tuned]

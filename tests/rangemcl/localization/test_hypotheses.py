@@ -66,15 +66,15 @@ def test_allocation_and_kld_bound():
 def test_convergence_test_needs_margin_distance_and_a_compact_leader():
     from rangemcl.localization.hypotheses import Hypothesis
 
-    def h(share, r=1.0):
-        return Hypothesis(0, share, math.log(share), 10, np.zeros(3), r)
+    def h(share, x=0.0, r=1.0):
+        return Hypothesis(0, share, math.log(share), 10, np.array([x, 0.0, 0.0]), r)
 
     t = ConvergenceTest(margin_nats=5.0, min_distance_m=4.0, compact_radius_m=3.0)
-    assert not t.update([h(0.5), h(0.5)], True, 10.0)  # a tie: never
+    assert not t.update([h(0.5), h(0.5, 50.0)], True, 10.0)  # a tie: never
     t.reset()
-    assert not t.update([h(0.999), h(0.001)], True, 2.0)  # decisive, but not driven far enough
-    assert t.update([h(0.999), h(0.001)], True, 2.5)
-    assert not t.update([h(0.999), h(0.001)], False, 5.0)  # a new leader starts over
+    assert not t.update([h(0.999), h(0.001, 50.0)], True, 2.0)  # decisive, but not driven far enough
+    assert t.update([h(0.999), h(0.001, 50.0)], True, 2.5)
+    assert not t.update([h(0.999), h(0.001, 50.0)], False, 5.0)  # a new leader starts over
     assert not t.update([h(1.0, r=8.0)], True, 10.0)  # alone but spread out
 
 
