@@ -119,11 +119,11 @@ class ConvergenceSettings:
     separation_m: float = 5.0  # (a rival: a cluster farther than this from the leader) ...
     min_distance_m: float = 8.0  # ... having led over this much driving
     min_cluster_particles: int = 20  # every surviving cluster keeps at least this many particles
-    prune_nats: float = 25.0  # clusters this far below the leader are dropped
-    max_clusters: int = 300  # at most this many clusters are kept (the largest shares)
+    prune_nats: float = 15.0  # clusters this far below the leader are dropped
+    max_clusters: int = 150  # at most this many clusters are kept (the largest shares)
     kld_epsilon: float = 0.05  # KLD-sampling bound while searching (Fox 2003) ...
-    kld_bin_xy_m: float = 1.0  # ... on bins of this size ...
-    kld_bin_yaw_deg: float = 10.0
+    kld_bin_xy_m: float = 2.0  # ... on bins of this size ...
+    kld_bin_yaw_deg: float = 15.0
     min_search_particles: int = 1000  # ... but never fewer than this while searching
 
 
@@ -152,7 +152,8 @@ class InitSettings:
     prior_top: int = 300  # the prior's best (cell, yaw) candidates drawn from (at most 2 % of its cells)
     prior_cell_m: float = 2.0  # the prior's grid
     prior_yaw_sigma_deg: float = 2.0  # yaw spread around a candidate's aligned yaw
-    inject_share: float = 0.05  # while searching: fresh prior particles per update (of the cloud) ...
+    inject_share: float = 0.05  # while searching: fresh prior particles per update (of the cloud), at the
+    inject_top: int = 30  # prior's best places for that scan ...
     inject_below_share: float = 0.5  # ... while no hypothesis holds this share of the weight
 
 
@@ -189,6 +190,7 @@ class LocalizerSettings:
             "convergence.min_search_particles": c.min_search_particles,
             "init.prior_top": self.init.prior_top,
             "init.prior_cell_m": self.init.prior_cell_m,
+            "init.inject_top": self.init.inject_top,
         }
         for key in (
             "overlap_tau_m",
@@ -503,12 +505,13 @@ class MonteCarloLocalizer:
             )
         return np.column_stack([xy, yaw])
 
-    def _from_prior(self, n: int, levelled_points: np.ndarray) -> np.ndarray | None:
-        """``n`` particles around the prior's best places for this scan (None when the scan has too few
-        points in the prior's height band to compare)."""
+    def _from_prior(self, n: int, levelled_points: np.ndarray, top: int | None = None) -> np.ndarray | None:
+        """``n`` particles around the prior's ``top`` best places for this scan (default ``prior_top``,
+        at most 2 % of the map's cells); None when the scan has too few points in the prior's height band
+        to compare."""
         i = self.settings.init
         prior = self.place_prior()
-        top = min(i.prior_top, max(20, len(prior.xy) // 50))  # at most 2 % of the map's cells
+        top = min(top or i.prior_top, max(20, len(prior.xy) // 50))
         xy, yaw, _cost, known = prior.candidates(levelled_points, self.sensor_height_m, top)
         if known < max(8, prior.params.bins // 20) or n <= 0:
             return None
@@ -714,7 +717,7 @@ class MonteCarloLocalizer:
             inside = np.flatnonzero(labels == best.label)
             wi = w[inside] / w[inside].sum()
             self.particles = self.particles[inside]
-            self._resample(wi, min(ps.converged_count, len(inside)))
+            self._resample(wi, ps.converged_count)
             self.converged = True
             self._leader = None
             self.last_estimate = pose_estimate(self.particles, self.weights, ps.estimate_best_share)
@@ -740,7 +743,7 @@ class MonteCarloLocalizer:
             and i.inject_share > 0
         ):
             k = max(1, int(round(i.inject_share * n)))
-            fresh = self._from_prior(k, levelled)
+            fresh = self._from_prior(k, levelled, i.inject_top)
             if fresh is not None:
                 parts = np.vstack([parts, fresh])
                 logw = np.concatenate(

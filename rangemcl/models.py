@@ -34,7 +34,9 @@ class ScoringModel:
 
     Models that cast rays also leave ``last_inliers`` ``(N,)``: per particle, the share of the scan's
     structure rays (those that met something above the ground: the ground agrees almost anywhere) that
-    agree with the map within ``inlier_m``; lost detection watches it. ``None`` for models without it."""
+    agree with the map within ``inlier_m``, leaving out those measured far beyond the map's surface (they
+    passed where the map holds a removed object) but never more than half; lost detection watches it.
+    ``None`` for models without it."""
 
     name = ""
     lost_floor = 0.3  # the recovery's floor on the best badness, in the model's units

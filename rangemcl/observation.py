@@ -47,7 +47,7 @@ def particle_residual_kernel(
     out_mean: wp.array[float],
     out_agree: wp.array[float],
     out_beyond: wp.array[float],  # share of rays measured more than tau beyond the map's surface
-    out_structure: wp.array[float],  # share of the structure rays that agree
+    out_structure: wp.array[float],  # share of the structure rays that agree (see below)
     out_hist: wp.array2d[float],  # (N, bins); (1, 0) when no histogram is wanted
 ):
     k = wp.tid() + offset
@@ -60,6 +60,7 @@ def particle_residual_kernel(
     beyond = float(0.0)
     s_agree = float(0.0)
     s_count = float(0.0)
+    s_far = float(0.0)
     bins = out_hist.shape[1]
     for i in range(directions.shape[0]):
         d = directions[i]
@@ -77,6 +78,7 @@ def particle_residual_kernel(
                 beyond += 1.0
             if e > cap:  # far beyond the map's surface: a removed object, not a small pose error
                 lim = cap_beyond
+                s_far += structure[i]
             if bins > 0 and t < hist_top:
                 b = wp.min(int(t / hist_top * float(bins)), bins - 1)
                 out_hist[k, b] = out_hist[k, b] + 1.0
@@ -88,7 +90,9 @@ def particle_residual_kernel(
     out_mean[k] = total / float(directions.shape[0])
     out_agree[k] = agree / float(directions.shape[0])
     out_beyond[k] = beyond / float(directions.shape[0])
-    out_structure[k] = s_agree / wp.max(s_count, 1.0)
+    # structure rays that agree, among those not far beyond the map's surface (removed objects), but
+    # never out of fewer than half of them (a scan that sees past the map everywhere does not agree)
+    out_structure[k] = s_agree / wp.max(wp.max(s_count - s_far, 0.5 * s_count), 1.0)
 
 
 class ObservationModel:
@@ -163,7 +167,8 @@ class ObservationModel:
     ):
         """Per particle, from one pass over its rays: ``mean`` (``d`` of Eq. 5), ``agree`` (the share of
         rays whose residual is below ``agree_m``), ``beyond`` (the share measured more than ``agree_m``
-        longer than the map's surface), ``structure`` (the share of the structure rays that agree) and,
+        longer than the map's surface), ``structure`` (the share of the structure rays that agree, among
+        those not more than ``cap_m`` beyond the map's surface, at least half of them) and,
         with ``hist_bins``, ``hist`` ``(N, bins)``: counts of the rendered ranges (hits only) in equal bins
         over ``[0, hist_top_m)``."""
         if self._rays is None:

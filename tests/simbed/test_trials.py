@@ -178,3 +178,44 @@ def test_suite_with_localizer_settings(tiny_map, tmp_path):
     bad.write_text("observation:\n  ray_samplin: elevation\n")
     with pytest.raises(InputError, match=r"bad\.yaml.*ray_samplin"):
         suite_settings(bad)
+
+
+def test_report_sets_methods_side_by_side_with_their_event_counts(tmp_path):
+    def row(method, sensor, success, conv, wrong, uncaught, alarms):
+        return {
+            "method": method,
+            "sensor": sensor,
+            "success": str(success),
+            "frames_to_converge": conv,
+            "frames_after_convergence": "50",
+            "location_rmse_m": "0.1",
+            "yaw_rmse_deg": "0.2",
+            "location_median_m": "0.05",
+            "hz_after": "30",
+            "seconds_per_frame_before": "1",
+            "relocalized_after_frames": "",
+            "wrong_convergences": str(wrong),
+            "wrong_convergences_uncaught": str(uncaught),
+            "false_alarms": str(alarms),
+        }
+
+    rows = [
+        row("default", "vlp-16", True, "20", 0, 0, 0),
+        row("default", "vlp-16", True, "24", 1, 0, 0),
+        row("paper", "vlp-16", False, "", 2, 1, 0),
+        row("paper", "vlp-16", True, "40", 0, 0, 1),
+    ]
+    from simbed.trials import write_report
+
+    md, _ = write_report("sensors", rows, tmp_path)
+    table = md.read_text()
+    assert (
+        "| method | sensor | trials | successes | not_converged | converged_failed | wrong_convergences |"
+        in table
+    )
+    assert "| default | vlp-16 | 2 | 2 | 0 | 0 | 1 | 0 | 0 |" in table
+    assert "| paper | vlp-16 | 2 | 1 | 1 | 0 | 2 | 1 | 1 |" in table
+    # rows of earlier revisions (no method, no counts) still report, without counts
+    old = [{k: v for k, v in r.items() if k not in ("method", "false_alarms")} for r in rows[:2]]
+    table = write_report("sensors", old, tmp_path)[0].read_text()
+    assert "| vlp-16 | 2 | 2 | 0 | 0 | 1 | 0 | – |" in table
