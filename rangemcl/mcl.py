@@ -84,7 +84,7 @@ class ObservationSettings:
     model: str = "range"  # range (paper Eq. 5) | overlap | likelihood_field | histogram (rangemcl.models)
     sigma_m: float = 0.25  # σ_d of Eq. 5 (paper 5.0, reference code 2.0; chosen by measurement, README)
     rays: int = 500  # measured points cast per particle (a random subset of the valid ones) ...
-    ray_sampling: str = "points"  # ... each valid point alike (points), each elevation band alike
+    ray_sampling: str = "structure"  # ... each valid point alike (points), each elevation band alike
     # (elevation: 2-degree bands of the sensor's vertical field, so that a sensor whose beams crowd the
     # road near the car still sends rays to what lies farther and higher), or structure: at most
     # ground_share of the rays from the road (points within 0.5 m of the sensor's ground), the rest from

@@ -34,8 +34,9 @@ class ScoringModel:
 
     Models that cast rays also leave ``last_inliers`` ``(N,)``: per particle, the share of the scan's
     structure rays (those that met something above the ground: the ground agrees almost anywhere) that
-    agree with the map within ``inlier_m``, leaving out those measured far beyond the map's surface (they
-    passed where the map holds a removed object) but never more than half; lost detection watches it.
+    agree with the map within ``inlier_m``, leaving out those more than ``cap_m`` off the map's surface
+    either way (objects added since the map was made, or removed from it) but never more than half of
+    them (at a wrong pose most are far off); lost detection watches it.
     ``None`` for models without it."""
 
     name = ""

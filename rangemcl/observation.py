@@ -71,6 +71,7 @@ def particle_residual_kernel(
         t, m, _face, _normal = closest_hit(meshes, inv_poses, moved, ow, dw, limit)
         r = float(margin)
         lim = cap
+        far = structure[i]  # a miss: the scan met something where the map has nothing (or wrong pose)
         if m >= 0:
             e = measured[i] - t
             r = wp.abs(e)
@@ -78,11 +79,13 @@ def particle_residual_kernel(
                 beyond += 1.0
             if e > cap:  # far beyond the map's surface: a removed object, not a small pose error
                 lim = cap_beyond
-                s_far += structure[i]
+            if wp.abs(e) <= cap:
+                far = 0.0
             if bins > 0 and t < hist_top:
                 b = wp.min(int(t / hist_top * float(bins)), bins - 1)
                 out_hist[k, b] = out_hist[k, b] + 1.0
         s_count += structure[i]
+        s_far += far
         if r < tau:
             agree += 1.0
             s_agree += structure[i]
@@ -90,8 +93,9 @@ def particle_residual_kernel(
     out_mean[k] = total / float(directions.shape[0])
     out_agree[k] = agree / float(directions.shape[0])
     out_beyond[k] = beyond / float(directions.shape[0])
-    # structure rays that agree, among those not far beyond the map's surface (removed objects), but
-    # never out of fewer than half of them (a scan that sees past the map everywhere does not agree)
+    # structure rays that agree, among those within cap of the map's surface (farther ones: objects added
+    # or removed since the map was made), but never out of fewer than half of them (at a wrong pose most
+    # structure rays are far off the map's surfaces)
     out_structure[k] = s_agree / wp.max(wp.max(s_count - s_far, 0.5 * s_count), 1.0)
 
 
@@ -168,7 +172,7 @@ class ObservationModel:
         """Per particle, from one pass over its rays: ``mean`` (``d`` of Eq. 5), ``agree`` (the share of
         rays whose residual is below ``agree_m``), ``beyond`` (the share measured more than ``agree_m``
         longer than the map's surface), ``structure`` (the share of the structure rays that agree, among
-        those not more than ``cap_m`` beyond the map's surface, at least half of them) and,
+        those within ``cap_m`` of the map's surface, at least half of them) and,
         with ``hist_bins``, ``hist`` ``(N, bins)``: counts of the rendered ranges (hits only) in equal bins
         over ``[0, hist_top_m)``."""
         if self._rays is None:
