@@ -67,8 +67,9 @@ TREE_OFFSET_M = 7.8
 BUILDING_MIN_OFFSET_M = 9.5  # nearest building / wall face from any road centre line
 ROAD_THICKNESS_M = 0.2
 CAR_XML = Path(__file__).resolve().parents[1] / "scenes" / "car.xml"
-SHIPPED_TOWNS = {"town_small": (1, 200.0), "town_large": (2, 600.0)}
-"""Scenes shipped in ``scenes/``: name -> (seed, size_m)."""
+SHIPPED_TOWNS = {"town_small": (1, 200.0), "town_medium": (3, 300.0), "town_large": (2, 600.0)}
+"""Scenes shipped in ``scenes/``: name -> (seed, size_m). town_medium is the second town of the
+global-localization suites (issue 13: another seed and size than town_large's)."""
 
 _YAML_KEYS = (
     "name",
