@@ -713,6 +713,7 @@ class MonteCarloLocalizer:
         won = self.convergence_test.update(hyps, same, self._moved_m)
         margin = self.convergence_test.margin
         out = dict(resampled=True, hypotheses=len(hyps), evidence_nats=margin)
+        self.last_estimate = best.centroid.copy()  # while searching, the leading hypothesis
         if won:
             inside = np.flatnonzero(labels == best.label)
             wi = w[inside] / w[inside].sum()
