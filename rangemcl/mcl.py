@@ -38,6 +38,11 @@ from rangemcl.localization.hypotheses import (
     summarize,
 )
 from rangemcl.localization.place_prior import PlacePrior, PriorParams, load_or_build
+from rangemcl.localization.scan_prep import (
+    RAY_SAMPLINGS,
+    ScanRays,
+    select_rays,
+)
 from rangemcl.mapping.meshmap import MeshMap
 from rangemcl.observation import ObservationModel
 from rangemcl.particles import (
@@ -49,7 +54,13 @@ from rangemcl.particles import (
     sample_motion,
 )
 from rangemcl.raycast import RayCaster
-from rangemcl.se2 import odometry_increment, rotation_roll_pitch, se2_between, se2_compose, wrap_angle
+from rangemcl.se2 import (  # noqa: F401 - rotation_roll_pitch, se2_between: re-exported
+    odometry_increment,
+    rotation_roll_pitch,
+    se2_between,
+    se2_compose,
+    wrap_angle,
+)
 
 # ---------------------------------------------------------------------------------------------- settings
 
@@ -281,22 +292,6 @@ class LocalizerSettings:
 # ---------------------------------------------------------------------------------------------- scan rays
 
 
-@dataclass
-class ScanRays:
-    """The measured rays used to weight the particles: unit directions in the levelled sensor frame at
-    the scan's stamp, and ranges."""
-
-    directions: np.ndarray  # (R, 3) float64
-    ranges: np.ndarray  # (R,) float64
-    valid_points: int  # valid points in the scan before subsampling
-    structure: np.ndarray | None = None  # (R,) bool: met something above the ground (set by the filter)
-
-
-RAY_SAMPLINGS = ("points", "elevation", "structure")
-ELEVATION_BAND_DEG = 2.0  # observation.ray_sampling "elevation": the bands sampled alike
-STRUCTURE_M = 0.5  # a ray whose point lies this far above the sensor's ground met structure, not road
-
-
 def prepare_rays(
     points: np.ndarray,
     settings: ObservationSettings,
@@ -308,63 +303,24 @@ def prepare_rays(
     roll_pitch: tuple[float, float] | None = None,
     sensor_height_m: float = 1.73,
 ) -> ScanRays | None:
-    """Pick, de-skew and level the rays of one scan; ``None`` when it has no valid point.
-
-    ``fire_time_s`` are the points' firing times relative to the scan's stamp (<= 0), ``frame_motion`` the
-    odometry motion ``(dx, dy, dyaw)`` over the frame period that ends at the stamp (in the previous
-    frame's pose), assumed uniform: a point fired at time ``t`` is moved by the part of that motion that
-    happened after ``t``.
-    """
-    p = np.asarray(points, np.float64).reshape(-1, 3)
-    r = np.linalg.norm(p, axis=1)
-    ok = np.isfinite(r) & (r >= settings.min_range_m) & (r <= settings.max_range_m)
-    idx = np.flatnonzero(ok)
-    if len(idx) == 0:
-        return None
-    if len(idx) > settings.rays:
-        weight = None
-        if settings.ray_sampling in ("elevation", "structure"):
-            key = np.floor(np.degrees(np.arcsin(p[idx, 2] / r[idx])) / ELEVATION_BAND_DEG).astype(np.int64)
-            part = np.zeros(len(idx), np.int64)
-            part_share = np.array([1.0, 0.0])
-            if settings.ray_sampling == "structure":
-                # height above the sensor's ground (levelled enough: a car's roll and pitch are small)
-                part = (p[idx, 2] + sensor_height_m < STRUCTURE_M).astype(np.int64)  # 1: road
-                if 0 < part.sum() < len(part):
-                    part_share = np.array([1.0 - settings.ground_share, settings.ground_share])
-                else:
-                    part[:] = 0
-            _, inverse, counts = np.unique(key * 2 + part, return_inverse=True, return_counts=True)
-            group_part = np.zeros(len(counts), np.int64)
-            group_part[inverse] = part
-            groups_in_part = np.bincount(group_part, minlength=2)
-            # each part its share, split evenly over its elevation bands, each band's points alike
-            weight = part_share[part] / groups_in_part[part] / counts[inverse]
-            weight /= weight.sum()
-        # sorted: the rays keep sweep order, which keeps them coherent in memory
-        idx = np.sort(rng.choice(idx, settings.rays, replace=False, p=weight))
-    q = p[idx]
-    if (
-        settings.deskew
-        and fire_time_s is not None
-        and frame_motion is not None
-        and frame_period_s is not None
-        and frame_period_s > 0
-    ):
-        t = np.asarray(fire_time_s, np.float64).reshape(-1)[idx]
-        # pose at firing time relative to the stamp's pose: the remaining share of the frame's motion, undone
-        share = np.clip(-t / frame_period_s, 0.0, 1.0)  # 0 at the stamp, 1 a whole period before it
-        end = np.asarray(frame_motion, np.float64)  # stamp pose in the previous frame's pose
-        at = np.stack([(1 - share) * end[0], (1 - share) * end[1], (1 - share) * end[2]], axis=1)
-        rel = se2_between(np.broadcast_to(end, at.shape), at)  # firing pose in the stamp's frame
-        c, s = np.cos(rel[:, 2]), np.sin(rel[:, 2])
-        q = np.stack(
-            [c * q[:, 0] - s * q[:, 1] + rel[:, 0], s * q[:, 0] + c * q[:, 1] + rel[:, 1], q[:, 2]], axis=1
-        )
-    if settings.level_with_imu and roll_pitch is not None:
-        q = q @ rotation_roll_pitch(*roll_pitch).T
-    rng_ = np.linalg.norm(q, axis=1)
-    return ScanRays(q / rng_[:, None], rng_, int(ok.sum()))
+    """:func:`rangemcl.localization.scan_prep.select_rays` with the observation settings' values."""
+    o = settings
+    return select_rays(
+        points,
+        rng,
+        rays=o.rays,
+        sampling=o.ray_sampling,
+        ground_share=o.ground_share,
+        min_range_m=o.min_range_m,
+        max_range_m=o.max_range_m,
+        deskew=o.deskew,
+        level_with_imu=o.level_with_imu,
+        fire_time_s=fire_time_s,
+        frame_period_s=frame_period_s,
+        frame_motion=frame_motion,
+        roll_pitch=roll_pitch,
+        sensor_height_m=sensor_height_m,
+    )
 
 
 # ---------------------------------------------------------------------------------------------- the filter
@@ -607,9 +563,6 @@ class MonteCarloLocalizer:
             if rays is None:
                 info["skipped_scan"] = True
             else:
-                # above the ground by STRUCTURE_M at the sensor's own ground (flat around the car)
-                height = rays.directions[:, 2] * rays.ranges + self.sensor_height_m
-                rays.structure = height > STRUCTURE_M
                 levelled = None
                 if self._needs_prior():
                     levelled = np.asarray(points, np.float64).reshape(-1, 3)
