@@ -34,8 +34,9 @@ import time
 import numpy as np
 
 
-def embree_residuals(scene, o3d, particles, z, rays, margin, cap):
-    """Eq. 5's mean residual per particle through Embree: all particles' rays in one batch."""
+def embree_residuals(scene, o3d, particles, z, rays, margin, cap, cap_beyond):
+    """Eq. 5's mean residual per particle through Embree: all particles' rays in one batch (a ray measured
+    more than ``cap`` beyond the map's surface costs ``cap_beyond``, as in the Warp kernel)."""
     n, r = len(particles), len(rays.ranges)
     c, s = np.cos(particles[:, 2]), np.sin(particles[:, 2])
     d = rays.directions
@@ -48,8 +49,11 @@ def embree_residuals(scene, o3d, particles, z, rays, margin, cap):
     )
     t = scene.cast_rays(o3d.core.Tensor(batch))["t_hit"].numpy().reshape(n, r)
     limit = rays.ranges[None, :] + margin
-    res = np.where(t <= limit, np.abs(rays.ranges[None, :] - t), margin)
-    return np.minimum(res, cap).mean(axis=1)
+    hit = t <= limit
+    e = rays.ranges[None, :] - t
+    res = np.minimum(np.where(hit, np.abs(e), margin), cap)
+    res = np.where(hit & (e > cap), cap_beyond, res)
+    return res.mean(axis=1)
 
 
 def main() -> None:
@@ -81,6 +85,7 @@ def main() -> None:
     settings = LocalizerSettings()
     o = settings.observation
     cap = np.inf if o.cap_m is None else o.cap_m
+    cap_beyond = cap if o.cap_beyond_m is None else min(o.cap_beyond_m, cap)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(
         o3d.core.Tensor(mesh_map.vertices.astype(np.float32)),
@@ -110,7 +115,7 @@ def main() -> None:
             t1 = time.perf_counter()
             dw = loc.residuals(rays)
             t2 = time.perf_counter()
-            de = embree_residuals(scene, o3d, loc.particles, z, rays, o.margin_m, cap)
+            de = embree_residuals(scene, o3d, loc.particles, z, rays, o.margin_m, cap, cap_beyond)
             t3 = time.perf_counter()
             weigh_warp.append(t2 - t1)
             weigh_embree.append(t3 - t2)
@@ -147,7 +152,7 @@ def main() -> None:
         gw.append(info.seconds)
         z = loc.sensor_z(loc.particles[:, :2])
         t1 = time.perf_counter()
-        embree_residuals(scene, o3d, loc.particles, z, rays, o.margin_m, cap)
+        embree_residuals(scene, o3d, loc.particles, z, rays, o.margin_m, cap, cap_beyond)
         ge.append(time.perf_counter() - t1)
     before = {
         "particles": args.many,
