@@ -96,7 +96,10 @@ def main() -> None:
             "recoveries": s["recoveries"],
             "recovery_frames": s["recovery_frames"],
             "location_rmse_m": m["location_rmse_m"],
+            "location_median_m": m.get("location_median_m"),
             "yaw_rmse_deg": m["yaw_rmse_deg"],
+            "wrong_convergences": m.get("wrong_convergences_count", 0),
+            "false_alarms": m.get("false_alarms_count", 0),
             "seconds_before_convergence_median": s["seconds_per_frame_before_convergence_median"],
             "hz_after_convergence": s["hz_after_convergence"],
         }
@@ -121,6 +124,9 @@ def main() -> None:
         "frames_to_converge_median": float(np.median([r["frames_to_converge"] for r in good]))
         if good
         else None,
+        "location_median_m": float(np.median([r["location_median_m"] for r in good])) if good else None,
+        "wrong_convergences": int(sum(r["wrong_convergences"] for r in runs)),
+        "false_alarms": int(sum(r["false_alarms"] for r in runs)),
         "per_run": runs,
     }
     (out / "accuracy.json").write_text(json.dumps(table, indent=2) + "\n")
@@ -131,7 +137,9 @@ def main() -> None:
     print(
         f"{table['kind']}: {table['successes']}/{table['runs']} successes, location RMSE "
         f"{fmt(table['location_rmse_m'], 3)} m, yaw RMSE {fmt(table['yaw_rmse_deg'], 2)} deg, "
-        f"median frames to converge {table['frames_to_converge_median']}"
+        f"median frames to converge {table['frames_to_converge_median']}, median error after convergence "
+        f"{fmt(table['location_median_m'], 3)} m; wrong convergences {table['wrong_convergences']}, "
+        f"false alarms {table['false_alarms']}"
     )
 
 
