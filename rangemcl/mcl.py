@@ -145,6 +145,7 @@ class RecoverySettings:
     # 0.3 m of the map among those not measured beyond it) falls below inlier_factor × its running median;
     # residual: when the best mean residual rises (the settings below)
     inlier_factor: float = 0.5
+    inlier_residual_factor: float = 0.75  # ... or below this × its median while the residual rule fires
     min_residual_m: float | None = None  # lost when the best particle's badness exceeds this (None: the
     # model's floor, 0.3 m for the range model) ...
     factor: float = 2.0  # ... and this many times its median over the recent converged updates ...
@@ -248,6 +249,7 @@ class LocalizerSettings:
             "convergence.prune_nats": c.prune_nats,
             "convergence.separation_m": c.separation_m,
             "recovery.inlier_factor": r.inlier_factor,
+            "recovery.inlier_residual_factor": r.inlier_residual_factor,
             "init.prior_yaw_sigma_deg": self.init.prior_yaw_sigma_deg,
         }
         for key, value in non_negative.items():
@@ -411,7 +413,8 @@ class MonteCarloLocalizer:
         self.pending = np.zeros(3)  # odometry since the last update, in the pose at that update
         self.last_estimate = np.zeros(3)
         self.recoveries = 0
-        self._best_history: list[float] = []
+        self._best_history: list[float] = []  # the best residual at recent converged updates
+        self._inlier_history: list[float] = []  # ... and the best particle's inlier share
         self._bad_updates = 0
         self._spread_count = self.settings.particles.global_count
         self._prior_pending = False  # a global spread waits for a scan to draw from the prior
@@ -504,6 +507,7 @@ class MonteCarloLocalizer:
         self.log_w = np.zeros(len(self.particles))
         self.pending = np.zeros(3)
         self._best_history.clear()
+        self._inlier_history.clear()
         self._bad_updates = 0
         self._leader = None
         self.last_estimate = pose_estimate(
@@ -736,32 +740,40 @@ class MonteCarloLocalizer:
         return len(tiles) <= c.tiles and r95 <= c.max_radius_m
 
     def _lost(self, best: float, inliers: float = math.nan) -> bool:
-        """Lost when the watched signal stays bad for ``recovery.updates`` updates in a row: the best
-        particle's inlier share below ``inlier_factor`` × its running median (``signal: inliers``; a
-        removed object in the map does not lower it, see :func:`rangemcl.models.inlier_share`), or its
-        badness above ``factor`` × its running median (``signal: residual``)."""
+        """Lost when the watched signal stays bad for ``recovery.updates`` updates in a row.
+
+        ``signal: inliers``: the best particle's inlier share (:func:`rangemcl.models.inlier_share`: rays
+        far beyond the map, i.e. removed objects, are left out) below ``inlier_factor`` × its running
+        median; or below ``inlier_residual_factor`` × that median *while* the best residual is above
+        ``factor`` × its own running median (and the model's floor): a look-alike place keeps part of its
+        rays agreeing, but its residual jumps, while a removed object raises the residual and leaves the
+        share alone. ``signal: residual``: the residual rule alone (the localizer before issue 13)."""
         r = self.settings.recovery
         if not r.enabled:
             return False
-        hist = self._best_history
+        res_hist, inl_hist = self._best_history, self._inlier_history
+        floor = self.scorer.lost_floor if r.min_residual_m is None else r.min_residual_m
+        if len(res_hist) >= min(5, r.history):
+            res_limit = max(floor, r.factor * float(np.median(res_hist)))
+        else:  # just converged: no history yet, so judge against the floor (with some room)
+            res_limit = 1.5 * floor
+        residual_bad = best > res_limit
         if r.signal == "inliers" and math.isfinite(inliers):
-            value = inliers
-            limit = r.inlier_factor * (float(np.median(hist)) if len(hist) >= min(5, r.history) else 0.6)
-            bad = value < limit
+            level = float(np.median(inl_hist)) if len(inl_hist) >= min(5, r.history) else 0.6
+            bad = inliers < r.inlier_factor * level or (
+                residual_bad and inliers < r.inlier_residual_factor * level
+            )
         else:
-            value = best
-            floor = self.scorer.lost_floor if r.min_residual_m is None else r.min_residual_m
-            if len(hist) >= min(5, r.history):
-                limit = max(floor, r.factor * float(np.median(hist)))
-            else:  # just converged: no history yet, so judge against the floor (with some room)
-                limit = 1.5 * floor
-            bad = value > limit
+            bad = residual_bad
         if bad:
             self._bad_updates += 1
         else:
             self._bad_updates = 0
-            hist.append(value)
-            del hist[: -r.history]
+            res_hist.append(best)
+            del res_hist[: -r.history]
+            if math.isfinite(inliers):
+                inl_hist.append(inliers)
+                del inl_hist[: -r.history]
         return self._bad_updates >= r.updates
 
 

@@ -60,7 +60,8 @@ def particle_residual_kernel(
     beyond = float(0.0)
     s_agree = float(0.0)
     s_count = float(0.0)
-    s_far = float(0.0)
+    s_far = float(0.0)  # structure rays far short of the map's surface (or meeting nothing of it)
+    s_gone = float(0.0)  # structure rays far beyond it
     bins = out_hist.shape[1]
     for i in range(directions.shape[0]):
         d = directions[i]
@@ -79,7 +80,8 @@ def particle_residual_kernel(
                 beyond += 1.0
             if e > cap:  # far beyond the map's surface: a removed object, not a small pose error
                 lim = cap_beyond
-            if wp.abs(e) <= cap:
+                s_gone += structure[i]
+            if e >= -cap:
                 far = 0.0
             if bins > 0 and t < hist_top:
                 b = wp.min(int(t / hist_top * float(bins)), bins - 1)
@@ -93,10 +95,11 @@ def particle_residual_kernel(
     out_mean[k] = total / float(directions.shape[0])
     out_agree[k] = agree / float(directions.shape[0])
     out_beyond[k] = beyond / float(directions.shape[0])
-    # structure rays that agree, among those within cap of the map's surface (farther ones: objects added
-    # or removed since the map was made), but never out of fewer than half of them (at a wrong pose most
-    # structure rays are far off the map's surfaces)
-    out_structure[k] = s_agree / wp.max(wp.max(s_count - s_far, 0.5 * s_count), 1.0)
+    # structure rays that agree, among those within cap of the map's surface: the ones far beyond it
+    # (objects removed since the map was made) left out, and those far short of it (objects added, or a
+    # wrong pose) left out too but at most half of the rest (at a wrong pose most of them are far short)
+    rest = s_count - s_gone
+    out_structure[k] = s_agree / wp.max(wp.max(rest - s_far, 0.5 * rest), 1.0)
 
 
 class ObservationModel:
