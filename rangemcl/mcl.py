@@ -128,6 +128,7 @@ class ConvergenceSettings:
     cluster_m: float = 3.0  # hypotheses: particles in touching cells of this size form one cluster
     margin_nats: float = 6.0  # ... the leader's log weight share must beat the best rival's by this
     separation_m: float = 5.0  # (a rival: a cluster farther than this from the leader) ...
+    min_inliers: float = 0.6  # ... and its best particle's inlier share must reach this (it fits at all)
     min_distance_m: float = 8.0  # ... having led over this much driving
     min_cluster_particles: int = 20  # every surviving cluster keeps at least this many particles
     prune_nats: float = 15.0  # clusters this far below the leader are dropped
@@ -166,7 +167,7 @@ class InitSettings:
     prior_yaw_sigma_deg: float = 2.0  # yaw spread around a candidate's aligned yaw
     inject_share: float = 0.05  # while searching: fresh prior particles per update (of the cloud), at the
     inject_top: int = 30  # prior's best places for that scan ...
-    inject_below_share: float = 0.5  # ... while no hypothesis holds this share of the weight
+    inject_below_share: float = 1.0  # ... while no hypothesis holds this share of the weight (1: always)
 
 
 @dataclass
@@ -262,6 +263,8 @@ class LocalizerSettings:
             raise InputError(f"{where}: convergence.method {c.method!r}: expected 'hypotheses' or 'tiles'")
         if r.signal not in ("inliers", "residual"):
             raise InputError(f"{where}: recovery.signal {r.signal!r}: expected 'inliers' or 'residual'")
+        if not 0 <= c.min_inliers <= 1:
+            raise InputError(f"{where}: convergence.min_inliers must be in [0, 1], got {c.min_inliers}")
         if not 0 <= self.init.uniform_yaw_share <= 1:
             raise InputError(
                 f"{where}: init.uniform_yaw_share must be in [0, 1], got {self.init.uniform_yaw_share}"
@@ -668,6 +671,10 @@ class MonteCarloLocalizer:
         if self._leader is not None and len(self._leader) == len(labels):
             same = bool(self._leader[labels == best.label].mean() >= 0.5)
         won = self.convergence_test.update(hyps, same, self._moved_m)
+        inl = self.scorer.last_inliers
+        if won and inl is not None and len(inl) == len(labels):
+            # the winner must also fit: a place that merely fits less badly than the rest has not won
+            won = float(inl[labels == best.label].max()) >= c.min_inliers
         margin = self.convergence_test.margin
         out = dict(resampled=True, hypotheses=len(hyps), evidence_nats=margin)
         self.last_estimate = best.centroid.copy()  # while searching, the leading hypothesis
@@ -697,7 +704,7 @@ class MonteCarloLocalizer:
         if (
             i.place_prior
             and levelled is not None
-            and best.share < i.inject_below_share
+            and best.share <= i.inject_below_share
             and i.inject_share > 0
         ):
             k = max(1, int(round(i.inject_share * n)))
