@@ -6,14 +6,19 @@ already look right, from the map alone:
 
 * **Map side, once per map** (:meth:`PlacePrior.build`): on a grid of ``cell_m`` over the drivable area, a
   virtual sensor casts horizontal rays all around (``bins`` azimuths) at a few heights above the map's
-  ground (``heights_m``); each azimuth keeps the nearest hit (capped at ``max_range_m``). The result is a
-  *profile*: the distance to the nearest structure in every direction, at about a car's height. Stored
-  quantised to ``quant_m`` (one byte per azimuth) in the map folder (``place_prior.npz``, with a version
-  stamp and the parameters, rebuilt when either changes).
+  ground; each azimuth keeps the nearest hit (capped at ``max_range_m``). The result is a *profile*: the
+  distance to the nearest structure in every direction, in two height bands: **high** (``high_heights_m``,
+  2.2-3.4 m: above parked cars, which differ from drive to drive and hide the facades in the low band;
+  measured on a town_small test drive: true place first for 64 % of the scans against 16 % with the low
+  band) and **low** (``heights_m``, 0.6-1.4 m: for sensors that see nothing above their own height, such as
+  the MQ-8). Stored quantised to ``quant_m`` (one byte per azimuth and band) in the map folder
+  (``place_prior.npz``, with a version stamp and a key of the map and the parameters, rebuilt when either
+  changes).
 * **Scan side, every search update** (:func:`scan_profile`): the scan's points whose height above the
-  ground lies in the band the virtual rays sample (``band_m``) give, per azimuth bin, the nearest
-  horizontal distance. Bins with no such point are unknown and left out of the comparison, so any sensor
-  (8 to 128 beams) gives a profile of the same kind.
+  ground lies in a band (``high_band_m``, ``band_m``) give, per azimuth bin, the nearest horizontal
+  distance. Bins with no such point are unknown and left out of the comparison; the high band is used when
+  the scan knows at least ``min_known_share`` of its bins, else the low one. So any sensor (8 to 128 beams)
+  gives a profile of the same kind.
 * **Matching** (:meth:`PlacePrior.match`): a rotation of the car is a circular shift of its profile, so
   every cell is compared with the scan at *every* yaw at once: the masked squared difference for all
   shifts is three circular correlations, done by FFT for all cells together. Each cell gets its best
@@ -39,7 +44,7 @@ from rangemcl.errors import InputError
 from rangemcl.se2 import wrap_angle
 
 PRIOR_FILE = "place_prior.npz"
-PRIOR_VERSION = 1
+PRIOR_VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -48,8 +53,11 @@ class PriorParams:
 
     cell_m: float = 2.0  # grid spacing over the drivable area
     bins: int = 360  # azimuth bins (1 degree)
-    heights_m: tuple[float, ...] = (0.6, 1.0, 1.4)  # virtual horizontal rays, above the ground
-    band_m: tuple[float, float] = (0.4, 1.6)  # scan points in this height band above the ground count
+    heights_m: tuple[float, ...] = (0.6, 1.0, 1.4)  # low band: virtual horizontal rays above the ground
+    band_m: tuple[float, float] = (0.4, 1.6)  # ... and the scan points that count for it
+    high_heights_m: tuple[float, ...] = (2.2, 2.8, 3.4)  # high band (above parked cars)
+    high_band_m: tuple[float, float] = (2.0, 3.6)
+    min_known_share: float = 0.1  # the high band is used when the scan knows this share of its bins
     max_range_m: float = 30.0  # profiles are capped here (and the scan's points beyond are ignored)
     min_range_m: float = 1.5  # scan points closer than this are ignored (the car itself)
     quant_m: float = 0.125  # storage step: one byte per bin reaches 255 · 0.125 = 31.9 m
@@ -59,46 +67,54 @@ class PriorParams:
             raise InputError(f"place prior: bad parameters {self}")
         if self.max_range_m / self.quant_m > 255:
             raise InputError("place prior: max_range_m / quant_m must fit one byte (<= 255)")
-        if not self.band_m[0] < self.band_m[1] or not self.heights_m:
-            raise InputError(f"place prior: bad height band {self.band_m} or heights {self.heights_m}")
+        for band, heights in ((self.band_m, self.heights_m), (self.high_band_m, self.high_heights_m)):
+            if not band[0] < band[1] or not heights:
+                raise InputError(f"place prior: bad height band {band} or heights {heights}")
 
 
 def _encode(x: np.ndarray) -> np.ndarray:
     return np.log1p(np.asarray(x, np.float64))
 
 
-def scan_profile(
-    points: np.ndarray, sensor_height_m: float, params: PriorParams
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per azimuth bin the nearest horizontal distance of the scan's points in the height band, and a
-    mask of the bins that have one. ``points`` ``(M, 3)`` in the *levelled* sensor frame (x forward);
-    bin ``i`` spans azimuths ``[−π + iΔ, −π + (i+1)Δ)``. Returns ``(profile (B,), known (B,) bool)``."""
-    p = np.asarray(points, np.float64).reshape(-1, 3)
-    p = p[np.isfinite(p).all(axis=1)]
-    h = p[:, 2] + float(sensor_height_m)
-    r = np.hypot(p[:, 0], p[:, 1])
-    keep = (h >= params.band_m[0]) & (h <= params.band_m[1]) & (r >= params.min_range_m)
+def _band_profile(p: np.ndarray, h: np.ndarray, r: np.ndarray, band, params: PriorParams):
     B = params.bins
+    keep = (h >= band[0]) & (h <= band[1]) & (r >= params.min_range_m)
     prof = np.full(B, params.max_range_m)
     known = np.zeros(B, bool)
     if keep.any():
         az = np.arctan2(p[keep, 1], p[keep, 0])
         b = np.clip(((az + np.pi) / (2 * np.pi) * B).astype(np.int64), 0, B - 1)
-        rr = np.minimum(r[keep], params.max_range_m)
-        np.minimum.at(prof, b, rr)
+        np.minimum.at(prof, b, np.minimum(r[keep], params.max_range_m))
         known[b] = True
     return prof, known
+
+
+def scan_profile(
+    points: np.ndarray, sensor_height_m: float, params: PriorParams
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per band (row 0 low, row 1 high) and azimuth bin the nearest horizontal distance of the scan's
+    points in that height band, and a mask of the bins that have one. ``points`` ``(M, 3)`` in the
+    *levelled* sensor frame (x forward); bin ``i`` spans azimuths ``[−π + iΔ, −π + (i+1)Δ)``. Returns
+    ``(profile (2, B), known (2, B) bool)``."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    p = p[np.isfinite(p).all(axis=1)]
+    h = p[:, 2] + float(sensor_height_m)
+    r = np.hypot(p[:, 0], p[:, 1])
+    low = _band_profile(p, h, r, params.band_m, params)
+    high = _band_profile(p, h, r, params.high_band_m, params)
+    return np.stack([low[0], high[0]]), np.stack([low[1], high[1]])
 
 
 @dataclass
 class PriorMatch:
     """Every cell's best agreement with one scan: ``cost`` (mean squared difference of the encoded
-    profiles over the scan's known bins, lower is better), ``yaw`` of the sensor at the best shift, and
-    ``known_bins`` (how many bins the scan could compare)."""
+    profiles over the scan's known bins, lower is better), ``yaw`` of the sensor at the best shift,
+    ``known_bins`` (how many bins the scan could compare) and the ``band`` compared (0 low, 1 high)."""
 
     cost: np.ndarray  # (K,)
     yaw: np.ndarray  # (K,) radians
     known_bins: int
+    band: int = 1
 
 
 class PlacePrior:
@@ -106,7 +122,7 @@ class PlacePrior:
 
     Args:
         xy: ``(K, 2)`` cell centres in the map frame.
-        profiles: ``(K, B)`` uint8 quantised ranges (``quant_m`` steps).
+        profiles: ``(K, 2, B)`` uint8 quantised ranges (``quant_m`` steps), low and high band.
         params: the :class:`PriorParams` they were rendered with.
     """
 
@@ -115,11 +131,11 @@ class PlacePrior:
         self.profiles = np.asarray(profiles, np.uint8)
         self.params = params
         self.build_s = float(build_s)
-        if self.profiles.shape != (len(self.xy), params.bins) or len(self.xy) == 0:
+        if self.profiles.shape != (len(self.xy), 2, params.bins) or len(self.xy) == 0:
             raise InputError(f"place prior: {len(self.xy)} cells but profiles of shape {self.profiles.shape}")
-        enc = _encode(self.profiles.astype(np.float64) * params.quant_m)  # (K, B)
-        self._spec = np.fft.rfft(enc, axis=1)  # (K, B//2+1)
-        self._spec_sq = np.fft.rfft(enc * enc, axis=1)
+        enc = _encode(self.profiles.astype(np.float64) * params.quant_m)  # (K, 2, B)
+        self._spec = np.fft.rfft(enc, axis=2)  # (K, 2, B//2+1)
+        self._spec_sq = np.fft.rfft(enc * enc, axis=2)
 
     @property
     def nbytes(self) -> int:
@@ -146,25 +162,23 @@ class PlacePrior:
         B = params.bins
         az = -np.pi + (np.arange(B) + 0.5) * (2 * np.pi / B)
         dirs = np.column_stack([np.cos(az), np.sin(az), np.zeros(B)])  # (B, 3)
-        H = len(params.heights_m)
-        out = np.empty((len(xy), B), np.uint8)
+        heights = np.asarray([*params.heights_m, *params.high_heights_m])
+        H, n_low = len(heights), len(params.heights_m)
+        out = np.empty((len(xy), 2, B), np.uint8)
         for lo in range(0, len(xy), chunk):
             c = xy[lo : lo + chunk]
             k = len(c)
             origins = np.empty((k, H, B, 3))
             origins[..., 0] = c[:, None, None, 0]
             origins[..., 1] = c[:, None, None, 1]
-            origins[..., 2] = gz[lo : lo + chunk, None, None] + np.asarray(params.heights_m)[None, :, None]
+            origins[..., 2] = gz[lo : lo + chunk, None, None] + heights[None, :, None]
             d = np.broadcast_to(dirs, (k, H, B, 3))
             hits = caster.cast(
                 origins.reshape(-1, 3).astype(np.float32), d.reshape(-1, 3), params.max_range_m
             )
-            r = (
-                np.where(np.isfinite(hits.ranges), hits.ranges, params.max_range_m)
-                .reshape(k, H, B)
-                .min(axis=1)
-            )
-            out[lo : lo + chunk] = np.clip(np.rint(r / params.quant_m), 0, 255).astype(np.uint8)
+            r = np.where(np.isfinite(hits.ranges), hits.ranges, params.max_range_m).reshape(k, H, B)
+            bands = np.stack([r[:, :n_low].min(axis=1), r[:, n_low:].min(axis=1)], axis=1)  # (k, 2, B)
+            out[lo : lo + chunk] = np.clip(np.rint(bands / params.quant_m), 0, 255).astype(np.uint8)
         return cls(xy, out, params, build_s=time.perf_counter() - t0)
 
     # --- matching ----------------------------------------------------------------------------------------
@@ -172,16 +186,19 @@ class PlacePrior:
     def match(self, profile: np.ndarray, known: np.ndarray) -> PriorMatch:
         """Compare a scan's profile (:func:`scan_profile`) with every cell at every yaw."""
         B = self.params.bins
-        q = _encode(np.asarray(profile, np.float64).reshape(B))
-        m = np.asarray(known, bool).reshape(B).astype(np.float64)
+        prof = np.asarray(profile, np.float64).reshape(2, B)
+        kn = np.asarray(known, bool).reshape(2, B)
+        band = 1 if kn[1].sum() >= self.params.min_known_share * B else 0
+        q = _encode(prof[band])
+        m = kn[band].astype(np.float64)
         n = m.sum()
         if n < 1:
-            return PriorMatch(np.full(len(self.xy), np.inf), np.zeros(len(self.xy)), 0)
+            return PriorMatch(np.full(len(self.xy), np.inf), np.zeros(len(self.xy)), 0, band)
         # cost(s) = Σ_i m_i (q_i − c_{i+s})² / n, each sum a circular correlation over i
         A1 = np.conj(np.fft.rfft(m * q))
         A0 = np.conj(np.fft.rfft(m))
-        cross = np.fft.irfft(A1[None, :] * self._spec, n=B, axis=1)  # Σ m q c_{i+s}
-        sq = np.fft.irfft(A0[None, :] * self._spec_sq, n=B, axis=1)  # Σ m c²_{i+s}
+        cross = np.fft.irfft(A1[None, :] * self._spec[:, band], n=B, axis=1)  # Σ m q c_{i+s}
+        sq = np.fft.irfft(A0[None, :] * self._spec_sq[:, band], n=B, axis=1)  # Σ m c²_{i+s}
         cost = (float(np.sum(m * q * q)) - 2.0 * cross + sq) / n  # (K, B)
         s = np.argmin(cost, axis=1)
         rows = np.arange(len(cost))
@@ -191,7 +208,7 @@ class PlacePrior:
         frac = np.where(den > 1e-12, 0.5 * (cm - cp) / np.where(den > 1e-12, den, 1.0), 0.0)
         yaw = (s + np.clip(frac, -0.5, 0.5)) * (2 * np.pi / B)
         yaw = wrap_angle(yaw)
-        return PriorMatch(np.maximum(c0, 0.0), yaw, int(n))
+        return PriorMatch(np.maximum(c0, 0.0), yaw, int(n), band)
 
     def candidates(
         self, points: np.ndarray, sensor_height_m: float, top: int
@@ -233,7 +250,10 @@ class PlacePrior:
                     return None
                 p = meta["params"]
                 params = PriorParams(
-                    **{**p, "heights_m": tuple(p["heights_m"]), "band_m": tuple(p["band_m"])}
+                    **{
+                        **p,
+                        **{k: tuple(p[k]) for k in ("heights_m", "band_m", "high_heights_m", "high_band_m")},
+                    }
                 )
                 return cls(z["xy"], z["profiles"], params, build_s=float(meta.get("build_s", 0.0)))
         except (OSError, ValueError, KeyError, TypeError) as err:

@@ -69,18 +69,21 @@ def scan(t, caster, x, y, yaw, sensor="os1-64", columns=720):
 def test_fft_matching_equals_a_direct_search_over_every_shift():
     rng = np.random.default_rng(0)
     params = PriorParams(bins=72)
-    profiles = rng.integers(10, 240, (30, 72)).astype(np.uint8)
+    profiles = rng.integers(10, 240, (30, 2, 72)).astype(np.uint8)
     prior = PlacePrior(rng.uniform(0, 50, (30, 2)), profiles, params)
-    q = rng.uniform(2.0, 30.0, 72)
-    known = rng.uniform(size=72) < 0.6
-    m = prior.match(q, known)
-    enc_q = np.log1p(q)
-    enc_c = np.log1p(profiles * params.quant_m)
-    for k in range(30):
-        costs = [np.mean((enc_q - np.roll(enc_c[k], -s))[known] ** 2) for s in range(72)]
-        assert m.cost[k] == pytest.approx(min(costs), abs=1e-9)
-        s_best = int(np.argmin(costs))
-        assert circular_distance_deg(m.yaw[k], s_best * 2 * math.pi / 72) <= 0.5 * 360 / 72 + 1e-9
+    q = rng.uniform(2.0, 30.0, (2, 72))
+    for band, known_high in ((1, 0.6), (0, 0.05)):  # the high band when the scan knows enough of it
+        known = np.stack([rng.uniform(size=72) < 0.6, rng.uniform(size=72) < known_high])
+        m = prior.match(q, known)
+        assert m.band == band
+        enc_q = np.log1p(q[band])
+        enc_c = np.log1p(profiles[:, band] * params.quant_m)
+        mask = known[band]
+        for k in range(30):
+            costs = [np.mean((enc_q - np.roll(enc_c[k], -s))[mask] ** 2) for s in range(72)]
+            assert m.cost[k] == pytest.approx(min(costs), abs=1e-9)
+            s_best = int(np.argmin(costs))
+            assert circular_distance_deg(m.yaw[k], s_best * 2 * math.pi / 72) <= 0.5 * 360 / 72 + 1e-9
 
 
 def test_yaw_search_recovers_a_known_rotation_to_one_bin(town):
@@ -111,20 +114,22 @@ def test_true_cell_ranks_first_in_a_town_of_distinct_places(town):
     assert max(ranks) <= 0.01 * len(prior.xy), ranks
 
 
-def test_profile_of_a_scan_keeps_only_the_height_band_and_marks_empty_bins():
+def test_profile_of_a_scan_keeps_only_the_height_bands_and_marks_empty_bins():
     p = PriorParams(bins=4)
     pts = np.array(
         [
-            [5.0, 0.0, -1.73 + 1.0],  # 1 m above the ground, straight ahead: kept (bin 2 of 4: 0..90 deg)
+            [5.0, 0.0, -1.73 + 1.0],  # 1 m above the ground, straight ahead: low band (bin 2 of 4: 0..90 deg)
             [3.0, 0.0, -1.73 + 0.1],  # road: dropped
-            [-8.0, 0.1, -1.73 + 1.5],  # behind (bin 3, just below 180 deg): kept
-            [0.0, -6.0, -1.73 + 3.0],  # too high: dropped
+            [-8.0, 0.1, -1.73 + 1.5],  # behind (bin 3, just below 180 deg): low band
+            [0.0, -6.0, -1.73 + 3.0],  # 3 m up on the right (bin 1): high band
+            [0.0, -9.0, -1.73 + 5.0],  # too high for either
         ]
     )
     prof, known = scan_profile(pts, 1.73, p)
-    assert known.tolist() == [False, False, True, True]
-    assert prof[2] == pytest.approx(5.0) and prof[3] == pytest.approx(math.hypot(8.0, 0.1))
-    assert prof[0] == p.max_range_m
+    assert known.tolist() == [[False, False, True, True], [False, True, False, False]]
+    assert prof[0, 2] == pytest.approx(5.0) and prof[0, 3] == pytest.approx(math.hypot(8.0, 0.1))
+    assert prof[1, 1] == pytest.approx(6.0)
+    assert prof[0, 0] == p.max_range_m
 
 
 def test_prior_is_stored_in_the_map_folder_and_rebuilt_when_the_map_changes(town, tmp_path):
