@@ -146,7 +146,8 @@ class RecoverySettings:
     # 0.3 m of the map among those not measured beyond it) falls below inlier_factor × its running median;
     # residual: when the best mean residual rises (the settings below)
     inlier_factor: float = 0.5
-    inlier_residual_factor: float = 0.75  # ... or below this × its median while the residual rule fires
+    inlier_residual_factor: float = 0.75  # ... or below this × its median while the best residual is
+    inlier_residual_jump: float = 3.0  # ... above this × its own median
     min_residual_m: float | None = None  # lost when the best particle's badness exceeds this (None: the
     # model's floor, 0.3 m for the range model) ...
     factor: float = 2.0  # ... and this many times its median over the recent converged updates ...
@@ -251,6 +252,7 @@ class LocalizerSettings:
             "convergence.separation_m": c.separation_m,
             "recovery.inlier_factor": r.inlier_factor,
             "recovery.inlier_residual_factor": r.inlier_residual_factor,
+            "recovery.inlier_residual_jump": r.inlier_residual_jump,
             "init.prior_yaw_sigma_deg": self.init.prior_yaw_sigma_deg,
         }
         for key, value in non_negative.items():
@@ -752,9 +754,10 @@ class MonteCarloLocalizer:
         ``signal: inliers``: the best particle's inlier share (:func:`rangemcl.models.inlier_share`: rays
         far beyond the map, i.e. removed objects, are left out) below ``inlier_factor`` × its running
         median; or below ``inlier_residual_factor`` × that median *while* the best residual is above
-        ``factor`` × its own running median (and the model's floor): a look-alike place keeps part of its
-        rays agreeing, but its residual jumps, while a removed object raises the residual and leaves the
-        share alone. ``signal: residual``: the residual rule alone (the localizer before issue 13)."""
+        ``inlier_residual_jump`` × its own running median (and the model's floor): a look-alike place keeps
+        part of its rays agreeing, but its residual jumps 5-10x, while a removed object raises the residual
+        and leaves the share alone, and an actor alongside raises it 2-2.5x. ``signal: residual``: the
+        residual rule alone (the localizer before issue 13)."""
         r = self.settings.recovery
         if not r.enabled:
             return False
@@ -767,8 +770,11 @@ class MonteCarloLocalizer:
         residual_bad = best > res_limit
         if r.signal == "inliers" and math.isfinite(inliers):
             level = float(np.median(inl_hist)) if len(inl_hist) >= min(5, r.history) else 0.6
+            # the residual far above its level (a moving actor alongside raises it 2-2.5x at the true pose,
+            # a look-alike place 5-10x)
+            residual_far = best > max(floor, r.inlier_residual_jump * float(np.median(res_hist or [floor])))
             bad = inliers < r.inlier_factor * level or (
-                residual_bad and inliers < r.inlier_residual_factor * level
+                residual_far and inliers < r.inlier_residual_factor * level
             )
         else:
             bad = residual_bad
