@@ -38,7 +38,7 @@ from rangemcl.mcl import LocalizerSettings, MonteCarloLocalizer, rotation_roll_p
 
 FRAME_COLUMNS = (
     "frame,time_s,x,y,yaw,particles,converged,updated,resampled,skipped_scan,recovered,"
-    "best_residual_m,seconds,hypotheses,evidence_nats,inliers"
+    "best_residual_m,seconds,hypotheses,evidence_nats,inliers,vetoed"
 )
 
 
@@ -170,6 +170,7 @@ def localize_sequence(
         unreadable_scans=0,
         recovery_frames=[],
         convergence_frames=[],
+        vetoed_frames=[],
     )
     done = 0
     interrupted = False
@@ -208,6 +209,8 @@ def localize_sequence(
                 state["converged_frame"] = None
             if info.converged_now:
                 state["convergence_frames"].append(i)
+            if info.vetoed:
+                state["vetoed_frames"].append(i)
             if info.converged and state["converged_frame"] is None:
                 state["converged_frame"] = i
                 snapshots[f"frame_{i:06d}_converged"] = loc.particles.copy()
@@ -216,7 +219,7 @@ def localize_sequence(
                 f"{est[k, 0]:.4f},{est[k, 1]:.4f},{est[k, 2]:.6f},{info.particles},{int(info.converged)},"
                 f"{int(info.updated)},{int(info.resampled)},{int(info.skipped_scan)},{int(info.recovered)},"
                 f"{info.best_residual_m:.4f},{info.seconds:.4f},{info.hypotheses},{info.evidence_nats:.3f},"
-                f"{info.inliers:.3f}\n"
+                f"{info.inliers:.3f},{int(info.vetoed)}\n"
             )
             csv.flush()
             done = k + 1
@@ -257,6 +260,8 @@ def localize_sequence(
         "recoveries": state["recoveries"],
         "recovery_frames": state["recovery_frames"],
         "convergence_frames": state["convergence_frames"],
+        "vetoed_alarms": loc.vetoed_alarms,
+        "vetoed_frames": state["vetoed_frames"],
         "skipped_scans": state["skipped_scans"],
         "unreadable_scans": state["unreadable_scans"],
         "odometry_source": odo_source,

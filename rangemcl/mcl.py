@@ -37,6 +37,7 @@ from rangemcl.localization.hypotheses import (
     resample_by_cluster,
     summarize,
 )
+from rangemcl.localization.lost import Opinion, SignalWatch, candidate_particles, second_opinion
 from rangemcl.localization.place_prior import PlacePrior, PriorParams, load_or_build
 from rangemcl.localization.scan_prep import (
     RAY_SAMPLINGS,
@@ -153,6 +154,15 @@ class RecoverySettings:
     factor: float = 2.0  # ... and this many times its median over the recent converged updates ...
     updates: int = 5  # ... for this many updates in a row
     history: int = 50  # converged updates remembered for the median
+    second_opinion: bool = True  # a suspicion is lost only when the place prior's best places for the
+    # scan (rangemcl.localization.lost) hold one that explains it clearly better; else it is vetoed
+    opinion_top: int = 30  # ... those places (at least separation_m from the estimate) ...
+    opinion_per_place: int = 16  # ... each with this many particles over its cell
+    opinion_inlier_gain: float = 0.15  # better: inlier share higher by this (and a lower residual)
+    opinion_badness_ratio: float = 0.7  # ... or, for models without an inlier share, badness below this x
+    max_vetoed_updates: int = 30  # a suspicion lasting this many updates is lost all the same
+    probation_updates: int = 10  # after each convergence, a second opinion at this many updates ...
+    probation_hits: int = 2  # ... lost when it finds a better place this many times in a row
 
 
 @dataclass
@@ -195,6 +205,11 @@ class LocalizerSettings:
             "convergence.tiles": c.tiles,
             "recovery.updates": r.updates,
             "recovery.history": r.history,
+            "recovery.opinion_top": r.opinion_top,
+            "recovery.opinion_per_place": r.opinion_per_place,
+            "recovery.max_vetoed_updates": r.max_vetoed_updates,
+            "recovery.probation_hits": r.probation_hits,
+            "recovery.opinion_badness_ratio": r.opinion_badness_ratio,
             "convergence.cluster_m": c.cluster_m,
             "convergence.min_cluster_particles": c.min_cluster_particles,
             "convergence.max_clusters": c.max_clusters,
@@ -253,6 +268,8 @@ class LocalizerSettings:
             "recovery.inlier_factor": r.inlier_factor,
             "recovery.inlier_residual_factor": r.inlier_residual_factor,
             "recovery.inlier_residual_jump": r.inlier_residual_jump,
+            "recovery.opinion_inlier_gain": r.opinion_inlier_gain,
+            "recovery.probation_updates": r.probation_updates,
             "init.prior_yaw_sigma_deg": self.init.prior_yaw_sigma_deg,
         }
         for key, value in non_negative.items():
@@ -351,6 +368,7 @@ class StepInfo:
     evidence_nats: float = math.nan  # the leader's log weight share over the runner-up's (searching)
     inliers: float = math.nan  # the best particle's inlier share (models that report it)
     converged_now: bool = False  # convergence was declared at this update
+    vetoed: bool = False  # a lost suspicion at this update was vetoed by the second opinion
 
 
 class MonteCarloLocalizer:
@@ -418,9 +436,20 @@ class MonteCarloLocalizer:
         self.pending = np.zeros(3)  # odometry since the last update, in the pose at that update
         self.last_estimate = np.zeros(3)
         self.recoveries = 0
-        self._best_history: list[float] = []  # the best residual at recent converged updates
-        self._inlier_history: list[float] = []  # ... and the best particle's inlier share
-        self._bad_updates = 0
+        r = self.settings.recovery
+        self.watch = SignalWatch(
+            signal=r.signal,
+            inlier_factor=r.inlier_factor,
+            inlier_residual_factor=r.inlier_residual_factor,
+            inlier_residual_jump=r.inlier_residual_jump,
+            residual_factor=r.factor,
+            floor=self.scorer.lost_floor if r.min_residual_m is None else r.min_residual_m,
+            updates=r.updates,
+            history=r.history,
+        )
+        self.vetoed_alarms = 0  # lost suspicions that the second opinion vetoed (episodes)
+        self._probation = 0  # updates left in which each update gets a second opinion
+        self._probation_hits = 0
         self._spread_count = self.settings.particles.global_count
         self._prior_pending = False  # a global spread waits for a scan to draw from the prior
         self._leader: np.ndarray | None = None  # per particle: descends from the last leading cluster
@@ -511,9 +540,9 @@ class MonteCarloLocalizer:
         self.particles = np.asarray(particles, np.float64)
         self.log_w = np.zeros(len(self.particles))
         self.pending = np.zeros(3)
-        self._best_history.clear()
-        self._inlier_history.clear()
-        self._bad_updates = 0
+        self.watch.reset()
+        self._probation = 0
+        self._probation_hits = 0
         self._leader = None
         self.last_estimate = pose_estimate(
             self.particles, self.weights, self.settings.particles.estimate_best_share
@@ -572,14 +601,17 @@ class MonteCarloLocalizer:
             if rays is None:
                 info["skipped_scan"] = True
             else:
-                levelled = None
-                if self._needs_prior():
-                    levelled = np.asarray(points, np.float64).reshape(-1, 3)
+
+                def level() -> np.ndarray:
+                    out = np.asarray(points, np.float64).reshape(-1, 3)
                     if roll_pitch is not None and self.settings.observation.level_with_imu:
-                        levelled = levelled @ rotation_roll_pitch(*roll_pitch).T
+                        out = out @ rotation_roll_pitch(*roll_pitch).T
+                    return out
+
+                levelled = level() if self._needs_prior() else None
                 if self._prior_pending and levelled is not None:
                     self._draw_initial_prior(levelled)
-                info.update(self._weigh(rays, levelled))
+                info.update(self._weigh(rays, levelled, level))
         w = self.weights
         return StepInfo(
             estimate=self.estimate(),
@@ -620,7 +652,7 @@ class MonteCarloLocalizer:
         self.model.set_scan(rays.directions, rays.ranges)
         return self.model.mean_residuals(p, self.sensor_z(p[:, :2])).astype(np.float64)
 
-    def _weigh(self, rays: ScanRays, levelled: np.ndarray | None = None) -> dict:
+    def _weigh(self, rays: ScanRays, levelled: np.ndarray | None = None, level=None) -> dict:
         loglik, bad = self.scorer.score(rays, self.particles, self.sensor_z(self.particles[:, :2]))
         self.log_w = self.log_w + loglik
         best = float(bad.min())
@@ -637,7 +669,7 @@ class MonteCarloLocalizer:
         ps = self.settings.particles
         w = self.weights
         self.last_estimate = pose_estimate(self.particles, w, ps.estimate_best_share)
-        if self.converged and self._lost(best, inliers):
+        if self.converged and self._lost(rays, best, inliers, level, out):
             self.recoveries += 1
             self.spread(self._spread_count_for_recovery())
             out["recovered"] = True
@@ -649,6 +681,7 @@ class MonteCarloLocalizer:
             elif self._is_converged():
                 self._resample(w, min(ps.converged_count, n))
                 self.converged = True
+                self._start_probation()
                 out.update(resampled=True, converged_now=True)
             elif effective_sample_size(w) < ps.resample_neff_ratio * n:
                 self._resample(w, n)
@@ -688,6 +721,7 @@ class MonteCarloLocalizer:
             self.converged = True
             self._leader = None
             self.last_estimate = pose_estimate(self.particles, self.weights, ps.estimate_best_share)
+            self._start_probation()
             out["converged_now"] = True
             return out
         keep = [h for h in hyps if h.log_share >= best.log_share - c.prune_nats][: c.max_clusters]
@@ -748,46 +782,72 @@ class MonteCarloLocalizer:
         tiles = np.unique(self.map.tile_at(self.particles[:, 0], self.particles[:, 1]))
         return len(tiles) <= c.tiles and r95 <= c.max_radius_m
 
-    def _lost(self, best: float, inliers: float = math.nan) -> bool:
-        """Lost when the watched signal stays bad for ``recovery.updates`` updates in a row.
+    def _start_probation(self) -> None:
+        self._probation = self.settings.recovery.probation_updates
+        self._probation_hits = 0
 
-        ``signal: inliers``: the best particle's inlier share (:func:`rangemcl.models.inlier_share`: rays
-        far beyond the map, i.e. removed objects, are left out) below ``inlier_factor`` × its running
-        median; or below ``inlier_residual_factor`` × that median *while* the best residual is above
-        ``inlier_residual_jump`` × its own running median (and the model's floor): a look-alike place keeps
-        part of its rays agreeing, but its residual jumps 5-10x, while a removed object raises the residual
-        and leaves the share alone, and an actor alongside raises it 2-2.5x. ``signal: residual``: the
-        residual rule alone (the localizer before issue 13)."""
+    def _lost(self, rays: ScanRays, best: float, inliers: float, level, out: dict) -> bool:
+        """Lost when the evidence watch (:class:`rangemcl.localization.lost.SignalWatch`) has been bad for
+        ``recovery.updates`` updates in a row *and* the second opinion finds a place that explains the scan
+        clearly better (else the suspicion is vetoed: the world changed, the place did not), or when a
+        suspicion outlasts ``max_vetoed_updates``; or, in the probation after a convergence, when the
+        second opinion finds a better place ``probation_hits`` times in a row. Without the place prior
+        (or with ``second_opinion`` off), the watch alone decides, as before issue 13's second opinion."""
         r = self.settings.recovery
         if not r.enabled:
             return False
-        res_hist, inl_hist = self._best_history, self._inlier_history
-        floor = self.scorer.lost_floor if r.min_residual_m is None else r.min_residual_m
-        if len(res_hist) >= min(5, r.history):
-            res_limit = max(floor, r.factor * float(np.median(res_hist)))
-        else:  # just converged: no history yet, so judge against the floor (with some room)
-            res_limit = 1.5 * floor
-        residual_bad = best > res_limit
-        if r.signal == "inliers" and math.isfinite(inliers):
-            level = float(np.median(inl_hist)) if len(inl_hist) >= min(5, r.history) else 0.6
-            # the residual far above its level (a moving actor alongside raises it 2-2.5x at the true pose,
-            # a look-alike place 5-10x)
-            residual_far = best > max(floor, r.inlier_residual_jump * float(np.median(res_hist or [floor])))
-            bad = inliers < r.inlier_factor * level or (
-                residual_far and inliers < r.inlier_residual_factor * level
-            )
-        else:
-            bad = residual_bad
-        if bad:
-            self._bad_updates += 1
-        else:
-            self._bad_updates = 0
-            res_hist.append(best)
-            del res_hist[: -r.history]
-            if math.isfinite(inliers):
-                inl_hist.append(inliers)
-                del inl_hist[: -r.history]
-        return self._bad_updates >= r.updates
+        suspicious = self.watch.update(best, inliers)
+        probation = self._probation > 0
+        self._probation = max(0, self._probation - 1)
+        if not (suspicious or probation):
+            self._probation_hits = 0
+            return False
+        if not (r.second_opinion and self.settings.init.place_prior and level is not None):
+            return suspicious
+        opinion = self._second_opinion(rays, best, inliers, level())
+        if not suspicious:
+            self._probation_hits = self._probation_hits + 1 if opinion is not None and opinion.better else 0
+            return self._probation_hits >= r.probation_hits
+        if opinion is None or opinion.better or self.watch.bad_updates >= r.max_vetoed_updates:
+            return True
+        if self.watch.bad_updates == r.updates:
+            self.vetoed_alarms += 1
+        out["vetoed"] = True
+        return False
+
+    def _second_opinion(
+        self, rays: ScanRays, best: float, inliers: float, levelled: np.ndarray
+    ) -> Opinion | None:
+        """:func:`rangemcl.localization.lost.second_opinion` on the prior's best places for this scan;
+        None when the scan has too little in the prior's height band to compare."""
+        r = self.settings.recovery
+        prior = self.place_prior()
+        xy, yaw, _cost, known = prior.candidates(levelled, self.sensor_height_m, r.opinion_top)
+        if known < max(8, prior.params.bins // 20):
+            return None
+        cand = candidate_particles(
+            xy,
+            yaw,
+            r.opinion_per_place,
+            prior.params.cell_m,
+            math.radians(self.settings.init.prior_yaw_sigma_deg),
+            self.rng,
+        )
+
+        def score(p: np.ndarray):
+            _loglik, bad = self.scorer.score(rays, p, self.sensor_z(p[:, :2]))
+            return bad, self.scorer.last_inliers
+
+        return second_opinion(
+            score,
+            self.last_estimate,
+            best,
+            inliers,
+            cand,
+            min_distance_m=self.settings.convergence.separation_m,
+            inlier_gain=r.opinion_inlier_gain,
+            badness_ratio=r.opinion_badness_ratio,
+        )
 
 
 # ---------------------------------------------------------------------------------------------- drivable area

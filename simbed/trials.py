@@ -77,8 +77,9 @@ class Trial:
 
 
 # in every trial key: the localizer's defaults changed (issue 13: place prior, hypotheses, change-robust
-# observation), so trials of earlier revisions (keys without "-v2") are never taken for today's
-LOCALIZER_REVISION = 2
+# observation; revision 3: the second opinion on lost alarms), so trials of earlier revisions (keys
+# without "-v3") are never taken for today's
+LOCALIZER_REVISION = 3
 
 DRIVE_FIELDS = ("scene", "sensor", "route", "variant", "actors", "drive_seed", "drive_frames")
 
@@ -293,6 +294,7 @@ def run_trial(
         "wrong_convergences": m.get("wrong_convergences_count", 0),
         "wrong_convergences_uncaught": m.get("wrong_convergences_uncaught", 0),
         "false_alarms": m.get("false_alarms_count", 0),
+        "vetoed_alarms": s.get("vetoed_alarms", 0),
         "frames_after_convergence": None if conv is None else m["frames"] - (conv - s["first_frame"]),
         "seconds_per_frame_before": s["seconds_per_frame_before_convergence_median"],
         "hz_after": s["hz_after_convergence"],
@@ -320,6 +322,7 @@ ROW_FIELDS = [f.name for f in fields(Trial) if f.name != "settings"] + [
     "wrong_convergences",
     "wrong_convergences_uncaught",
     "false_alarms",
+    "vetoed_alarms",
     "frames_after_convergence",
     "seconds_per_frame_before",
     "hz_after",

@@ -1,0 +1,169 @@
+"""Is a converged filter lost? A watch on the scan's evidence, and a second opinion from the place prior.
+
+A converged filter sees two kinds of bad news. At a **wrong place** (a look-alike street won the search)
+part of the rays keep agreeing with the map, but the best particle's residual jumps 5-10x and its inlier
+share falls. When the **world changed** at the right place (a parked car gone, a van or a bus alongside
+hiding the facades, an object the map never had) the residual rises as well, and the inlier share can
+fall as far. The signal alone cannot always tell the two apart (measured on the `town_medium` suite:
+five false alarms at the same two places of the test drive, README), so the watch only raises a
+*suspicion*, and the suspicion is tested against the map:
+
+* :class:`SignalWatch`: the best particle's inlier share (:func:`rangemcl.models.inlier_share`: rays far
+  beyond the map, i.e. removed objects, left out) below ``inlier_factor`` x its running median; or below
+  ``inlier_residual_factor`` x that median while the best residual is above ``inlier_residual_jump`` x its
+  own running median (signal ``inliers``); or the best residual above ``factor`` x its median and the
+  model's floor (signal ``residual``, the localizer before issue 13). Suspicious after ``updates`` bad
+  updates in a row.
+* :func:`second_opinion`: the prior's best places for *this* scan (away from the estimate) are scored
+  with the same observation model and rays as the filter. If one of them explains the scan clearly
+  better than the converged cloud's best particle (inlier share higher by ``inlier_gain``, residual
+  lower), the filter is at the wrong place: lost. If none does, the world changed and the filter stays
+  where it is (the alarm is *vetoed* and counted). A suspicion that lasts ``max_vetoed_updates`` updates
+  is taken as lost all the same, so that a true place missing from the prior cannot pin the filter to a
+  wrong one for ever.
+
+The same second opinion also runs at each of the first ``probation_updates`` updates after every
+convergence, suspicious or not: a wrong convergence that fits nearly as well as the truth raises no
+signal, but the true place, once the prior offers it, fits better (two checks in a row are needed).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from rangemcl.se2 import wrap_angle
+
+
+class SignalWatch:
+    """The running levels of the converged filter's evidence and the bad-update counter."""
+
+    def __init__(
+        self,
+        *,
+        signal: str = "inliers",
+        inlier_factor: float = 0.5,
+        inlier_residual_factor: float = 0.75,
+        inlier_residual_jump: float = 3.0,
+        residual_factor: float = 2.0,
+        floor: float = 0.3,
+        updates: int = 5,
+        history: int = 50,
+    ):
+        if signal not in ("inliers", "residual"):
+            raise ValueError(f"signal {signal!r}: expected 'inliers' or 'residual'")
+        self.signal = signal
+        self.inlier_factor = float(inlier_factor)
+        self.inlier_residual_factor = float(inlier_residual_factor)
+        self.inlier_residual_jump = float(inlier_residual_jump)
+        self.residual_factor = float(residual_factor)
+        self.floor = float(floor)
+        self.updates = int(updates)
+        self.history = int(history)
+        self.residuals: list[float] = []  # the best residual at recent good converged updates
+        self.inliers: list[float] = []  # ... and the best particle's inlier share
+        self.bad_updates = 0
+
+    def reset(self) -> None:
+        self.residuals.clear()
+        self.inliers.clear()
+        self.bad_updates = 0
+
+    def is_bad(self, best: float, inliers: float = math.nan) -> bool:
+        """Whether this update's evidence is bad against the running levels (no state change)."""
+        res_hist, inl_hist = self.residuals, self.inliers
+        warm = len(res_hist) >= min(5, self.history)
+        if self.signal == "inliers" and math.isfinite(inliers):
+            level = float(np.median(inl_hist)) if len(inl_hist) >= min(5, self.history) else 0.6
+            res_level = float(np.median(res_hist)) if res_hist else self.floor
+            residual_far = best > max(self.floor, self.inlier_residual_jump * res_level)
+            return inliers < self.inlier_factor * level or (
+                residual_far and inliers < self.inlier_residual_factor * level
+            )
+        # just converged (no history yet): judge against the floor, with some room
+        limit = (
+            max(self.floor, self.residual_factor * float(np.median(res_hist))) if warm else 1.5 * self.floor
+        )
+        return best > limit
+
+    def update(self, best: float, inliers: float = math.nan) -> bool:
+        """Record one converged update; True once it has been bad ``updates`` times in a row."""
+        if self.is_bad(best, inliers):
+            self.bad_updates += 1
+        else:
+            self.bad_updates = 0
+            self.residuals.append(best)
+            del self.residuals[: -self.history]
+            if math.isfinite(inliers):
+                self.inliers.append(inliers)
+                del self.inliers[: -self.history]
+        return self.bad_updates >= self.updates
+
+
+@dataclass
+class Opinion:
+    """What :func:`second_opinion` found: the best place away from the estimate, and whether it wins."""
+
+    better: bool
+    pose: np.ndarray  # (3,) the best candidate particle
+    badness: float  # its badness (the model's units: mean residual in m for the range model)
+    inliers: float  # its inlier share (NaN for models without one)
+    candidates: int  # particles scored
+
+
+def candidate_particles(
+    xy: np.ndarray,
+    yaw: np.ndarray,
+    per_place: int,
+    cell_m: float,
+    yaw_sigma_rad: float,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """``per_place`` particles on each candidate place: spread evenly over its cell (a stratified grid
+    with a random offset, so that some land within a fraction of the cell of any point) and around its
+    aligned yaw."""
+    k = max(1, int(round(math.sqrt(per_place))))
+    g = (np.arange(k) + 0.5) / k - 0.5  # cell-relative offsets of a k x k grid
+    gx, gy = np.meshgrid(g, g)
+    grid = np.column_stack([gx.ravel(), gy.ravel()])  # (k*k, 2)
+    n = len(xy)
+    m = len(grid)
+    jitter = rng.uniform(-0.5 / k, 0.5 / k, (n, m, 2))
+    pos = xy[:, None, :] + cell_m * (grid[None, :, :] + jitter)
+    ang = yaw[:, None] + rng.normal(0.0, yaw_sigma_rad, (n, m))
+    return np.column_stack([pos.reshape(-1, 2), wrap_angle(ang.reshape(-1))])
+
+
+def second_opinion(
+    score,
+    estimate: np.ndarray,
+    current_badness: float,
+    current_inliers: float,
+    candidates: np.ndarray,
+    *,
+    min_distance_m: float,
+    inlier_gain: float = 0.15,
+    badness_ratio: float = 0.7,
+) -> Opinion:
+    """Score ``candidates`` ``(M, 3)`` with ``score(particles) -> (badness (M,), inliers (M,) or None)``
+    and decide whether the best of those farther than ``min_distance_m`` from ``estimate`` explains the
+    scan clearly better than the filter's best particle: its inlier share higher by ``inlier_gain`` and
+    its badness lower (models with an inlier share), or its badness below ``badness_ratio`` x the
+    filter's (models without)."""
+    cand = np.asarray(candidates, np.float64).reshape(-1, 3)
+    far = np.hypot(cand[:, 0] - estimate[0], cand[:, 1] - estimate[1]) > min_distance_m
+    cand = cand[far]
+    if len(cand) == 0:
+        return Opinion(False, np.asarray(estimate, np.float64), math.inf, math.nan, 0)
+    bad, inl = score(cand)
+    bad = np.asarray(bad, np.float64)
+    if inl is not None and math.isfinite(current_inliers):
+        inl = np.asarray(inl, np.float64)
+        j = int(np.lexsort((bad, -inl))[0])  # the most inliers, then the least badness
+        better = bool(inl[j] >= current_inliers + inlier_gain and bad[j] < current_badness)
+        return Opinion(better, cand[j], float(bad[j]), float(inl[j]), len(cand))
+    j = int(np.argmin(bad))
+    better = bool(bad[j] < badness_ratio * current_badness)
+    return Opinion(better, cand[j], float(bad[j]), math.nan, len(cand))

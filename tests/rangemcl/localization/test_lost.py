@@ -1,0 +1,103 @@
+"""Lost detection of a converged filter (rangemcl.localization.lost): the evidence watch turns suspicious
+only after enough bad updates in a row, and the second opinion says "lost" only when another place
+explains the scan clearly better than where the filter is."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from rangemcl.localization.lost import SignalWatch, candidate_particles, second_opinion
+
+
+def test_the_watch_needs_bad_updates_in_a_row_against_its_own_level():
+    w = SignalWatch(signal="inliers", updates=3)
+    for _ in range(20):
+        assert not w.update(0.1, 0.9)
+    # an actor alongside: the residual doubles, the share dips a little: not bad
+    assert not w.is_bad(0.25, 0.8)
+    # half the usual share: bad, but suspicious only at the third in a row
+    assert not w.update(0.1, 0.4)
+    assert not w.update(0.1, 0.4)
+    assert not w.update(0.1, 0.9)  # one good update resets the count
+    assert [w.update(0.1, 0.4) for _ in range(3)] == [False, False, True]
+    # the look-alike rule: the share at 70 % of its level is bad only while the residual jumped (> 3x)
+    assert not w.is_bad(0.2, 0.63)
+    assert w.is_bad(0.5, 0.63)
+    w.reset()
+    assert w.bad_updates == 0 and not w.residuals
+
+
+def test_the_residual_signal_judges_a_new_convergence_by_the_floor():
+    w = SignalWatch(signal="residual", floor=0.3, residual_factor=2.0, updates=1)
+    assert w.is_bad(0.5)  # no history: 1.5 x floor = 0.45
+    assert not w.is_bad(0.4)
+    for _ in range(10):
+        w.update(0.2)
+    assert w.is_bad(0.41) and not w.is_bad(0.39)  # 2 x the median 0.2
+
+
+@pytest.mark.parametrize("per_place", [9, 16, 25])
+def test_candidate_particles_cover_each_place_cell(per_place):
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-100, 100, (40, 2))
+    yaw = rng.uniform(-math.pi, math.pi, 40)
+    cell = 2.0
+    p = candidate_particles(xy, yaw, per_place, cell, math.radians(2.0), rng)
+    k = int(round(math.sqrt(per_place)))
+    assert p.shape == (40 * k * k, 3)
+    # every point of every cell has a particle of its place within one grid spacing (diagonal)
+    probe = xy[:, None, :] + rng.uniform(-cell / 2, cell / 2, (40, 50, 2))
+    mine = p[:, :2].reshape(40, k * k, 2)
+    d = np.linalg.norm(probe[:, :, None, :] - mine[:, None, :, :], axis=-1).min(axis=2)
+    assert d.max() <= math.sqrt(2) * cell / k + 1e-9
+    # all inside their own cell, yaw around the place's
+    off = np.abs(mine - xy[:, None, :])
+    assert off.max() <= cell / 2 + 1e-9
+    dyaw = np.angle(np.exp(1j * (p[:, 2].reshape(40, -1) - yaw[:, None])))
+    assert np.abs(dyaw).max() < math.radians(10)
+
+
+def _scorer(truth):
+    """An analytic observation: badness grows with the distance from the true pose, inliers fall."""
+
+    def score(p):
+        d = np.hypot(p[:, 0] - truth[0], p[:, 1] - truth[1]) + 5.0 * np.abs(
+            np.angle(np.exp(1j * (p[:, 2] - truth[2])))
+        )
+        return 0.1 + 0.05 * d, np.exp(-0.2 * d)
+
+    return score
+
+
+def test_the_second_opinion_finds_the_true_place_only_when_the_filter_is_elsewhere():
+    rng = np.random.default_rng(1)
+    truth = np.array([50.0, 20.0, 0.3])
+    places = np.vstack([truth[:2] + np.array([0.4, -0.3]), rng.uniform(-200, 200, (29, 2))])
+    yaws = np.concatenate([[truth[2] + 0.01], rng.uniform(-3, 3, 29)])
+    cand = candidate_particles(places, yaws, 16, 2.0, math.radians(2.0), rng)
+    score = _scorer(truth)
+    # the filter sits on a look-alike 80 m away that fits worse
+    wrong = np.array([130.0, 20.0, 0.3])
+    bad_w, inl_w = 0.35, 0.45  # what the filter's best particle scored there
+    op = second_opinion(score, wrong, bad_w, inl_w, cand, min_distance_m=5.0)
+    assert op.better and np.hypot(*(op.pose[:2] - truth[:2])) < 1.0
+    # the filter at the true place, with the scene changed (everything fits worse, the truth still best)
+    op = second_opinion(score, truth, 0.3, 0.7, cand, min_distance_m=5.0)
+    assert not op.better
+    # the candidates near the estimate are not a second opinion: they are the filter's own place
+    op = second_opinion(score, truth + np.array([1.0, 0.0, 0.0]), 0.5, 0.2, cand, min_distance_m=5.0)
+    assert not op.better and np.hypot(*(op.pose[:2] - truth[:2])) > 5.0
+    # models without an inlier share: badness alone, by a ratio
+    op = second_opinion(lambda p: (score(p)[0], None), wrong, 0.35, math.nan, cand, min_distance_m=5.0)
+    assert op.better and math.isnan(op.inliers)
+    op = second_opinion(lambda p: (score(p)[0], None), wrong, 0.12, math.nan, cand, min_distance_m=5.0)
+    assert not op.better
+
+
+def test_no_candidate_far_enough_is_no_opinion():
+    cand = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 0.0]])
+    op = second_opinion(_scorer(np.zeros(3)), np.zeros(3), 1.0, 0.1, cand, min_distance_m=5.0)
+    assert not op.better and op.candidates == 0
