@@ -114,216 +114,291 @@ def localize_sequence(
     seq_dir, map_dir, out_dir, settings: LocalizerSettings | None = None, options: RunOptions | None = None
 ) -> dict:
     """Localize every frame of a sequence in a map; write the results folder; return the summary."""
-    settings = settings or LocalizerSettings()
-    opt = options or RunOptions()
-    settings.check()
-    if opt.mode not in ("global", "tracking"):
-        raise InputError(f"mode {opt.mode!r}: expected 'global' or 'tracking'")
-    if opt.particles is not None and opt.particles <= 0:
-        raise InputError(f"particles must be > 0, got {opt.particles}")
-    seq = load_sequence(seq_dir)
-    if len(seq) == 0:
-        raise InputError(f"{seq.root}: the sequence has no scans")
-    mesh_map = MeshMap.load(map_dir)
-    check_map_frame(seq, mesh_map)
-    odo, odo_source = odometry_xyyaw(seq, opt.odometry_from_poses)
-    first = int(opt.first_frame)
-    if not 0 <= first < len(seq):
-        raise InputError(f"first frame {first} out of range (the sequence has {len(seq)} frames)")
-    last = len(seq) if opt.frames is None else min(len(seq), first + int(opt.frames))
-    height, height_source = _sensor_height(seq, mesh_map, settings)
+    return LocalizationPipeline(seq_dir, map_dir, out_dir, settings, options).run()
 
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(opt.seed)
-    loc = MonteCarloLocalizer(
-        mesh_map, settings, rng=rng, device=opt.device, threads=opt.threads, sensor_height_m=height
-    )
-    truth = xyyaw_of(seq.poses) if seq.poses is not None else None
-    if opt.mode == "global":
-        loc.spread(opt.particles)
-    else:
-        if opt.init_pose is not None:
-            start = np.asarray(opt.init_pose, np.float64)
-        elif truth is not None:
-            start = truth[first]
-        else:
-            raise InputError(f"{seq.root}: tracking mode needs --init-pose (the sequence has no poses.txt)")
-        loc.start_at(start, opt.particles)
 
-    write_config(settings, out_dir / "config.yaml")  # feeds back in with --config
+@dataclass
+class FrameLog:
+    """What the filter did, frame by frame (the first ``done`` rows are filled)."""
 
-    period = _frame_period(seq)
-    n = last - first
-    est = np.zeros((n, 3))
-    counts = np.zeros(n, np.int64)
-    seconds = np.zeros(n)
-    converged_flags = np.zeros(n, bool)
-    snapshots: dict[str, np.ndarray] = {}
-    snap_at = set(np.linspace(first, last - 1, 4).astype(int).tolist())
-    state = dict(
-        converged_frame=None if opt.mode == "global" else first,
-        updates=0,
-        resamples=0,
-        recoveries=0,
-        skipped_scans=0,
-        unreadable_scans=0,
-        recovery_frames=[],
-        convergence_frames=[],
-        vetoed_frames=[],
-    )
-    done = 0
-    interrupted = False
-    csv = (out_dir / "frames.csv").open("w")
-    csv.write(FRAME_COLUMNS + "\n")
-    bar = _Progress(n, opt.progress)
-    clock = time.perf_counter()
-    try:
-        for k, i in enumerate(range(first, last)):
-            delta = se2_between(odo[i - 1], odo[i]) if i > first else np.zeros(3)
-            points = fire = None
-            try:
-                points = seq.scan(i)
-                fire = seq.point_meta(i).get("time_s")
-            except InputError:
-                state["unreadable_scans"] += 1
-            rp = tuple(seq.imu_roll_pitch[i]) if seq.imu_roll_pitch is not None else None
-            was_converged = loc.converged
-            if (
-                k == 0
-                or i in snap_at
-                or (not was_converged and opt.mode == "global" and k % 10 == 0 and len(snapshots) < 8)
-            ):
-                snapshots[f"frame_{i:06d}"] = loc.particles.copy()
-            info = loc.step(delta, points, fire_time_s=fire, frame_period_s=period, roll_pitch=rp)
-            est[k] = info.estimate
-            counts[k] = info.particles
-            seconds[k] = info.seconds
-            converged_flags[k] = info.converged
-            state["updates"] += info.updated
-            state["resamples"] += info.resampled
-            state["skipped_scans"] += info.skipped_scan
-            if info.recovered:
-                state["recoveries"] += 1
-                state["recovery_frames"].append(i)
-                state["converged_frame"] = None
-            if info.converged_now:
-                state["convergence_frames"].append(i)
-            if info.vetoed:
-                state["vetoed_frames"].append(i)
-            if info.converged and state["converged_frame"] is None:
-                state["converged_frame"] = i
-                snapshots[f"frame_{i:06d}_converged"] = loc.particles.copy()
-            csv.write(
-                f"{i},{seq.times[i] if seq.times is not None else i * (period or 0.1):.6f},"
-                f"{est[k, 0]:.4f},{est[k, 1]:.4f},{est[k, 2]:.6f},{info.particles},{int(info.converged)},"
-                f"{int(info.updated)},{int(info.resampled)},{int(info.skipped_scan)},{int(info.recovered)},"
-                f"{info.best_residual_m:.4f},{info.seconds:.4f},{info.hypotheses},{info.evidence_nats:.3f},"
-                f"{info.inliers:.3f},{int(info.vetoed)}\n"
-            )
-            csv.flush()
-            done = k + 1
-            bar.update(info)
-    except KeyboardInterrupt:
-        interrupted = True
-    finally:
-        csv.close()
-        bar.close()
-    wall = time.perf_counter() - clock
-    est, counts, seconds, converged_flags = est[:done], counts[:done], seconds[:done], converged_flags[:done]
-    poses = _poses_4x4(est, loc, seq, first)
-    Tr_inv = np.linalg.inv(seq.calib_Tr)
-    if done:
-        write_poses_txt(out_dir / "estimate_kitti.txt", poses @ Tr_inv)
-        times = (
-            seq.times[first : first + done] if seq.times is not None else np.arange(done) * (period or 0.1)
+    estimate: np.ndarray  # (n, 3)
+    particles: np.ndarray  # (n,)
+    seconds: np.ndarray  # (n,)
+    converged: np.ndarray  # (n,) bool
+    done: int = 0
+    interrupted: bool = False
+    wall_s: float = 0.0
+
+    @classmethod
+    def empty(cls, n: int) -> FrameLog:
+        return cls(np.zeros((n, 3)), np.zeros(n, np.int64), np.zeros(n), np.zeros(n, bool))
+
+    def trim(self) -> None:
+        k = self.done
+        self.estimate, self.particles = self.estimate[:k], self.particles[:k]
+        self.seconds, self.converged = self.seconds[:k], self.converged[:k]
+
+
+class LocalizationPipeline:
+    """``rangemcl localize`` as steps: :meth:`run` reads as the table of contents."""
+
+    def __init__(self, seq_dir, map_dir, out_dir, settings=None, options=None):
+        self.seq_dir, self.map_dir, self.out_dir = seq_dir, map_dir, Path(out_dir)
+        self.settings = settings or LocalizerSettings()
+        self.opt = options or RunOptions()
+        self.snapshots: dict[str, np.ndarray] = {}
+        self.events = dict(
+            converged_frame=None if self.opt.mode == "global" else 0,
+            updates=0,
+            resamples=0,
+            recoveries=0,
+            skipped_scans=0,
+            unreadable_scans=0,
+            recovery_frames=[],
+            convergence_frames=[],
+            vetoed_frames=[],
         )
-        atomic_write(out_dir / "estimate_tum.txt", "\n".join(poses_to_tum(poses, times)) + "\n")
-    if snapshots:
-        atomic_write(out_dir / "particles.npz", lambda fh: np.savez(fh, **snapshots))
-    after = converged_flags & (counts <= settings.particles.converged_count)
-    before = ~converged_flags
-    summary = {
-        "sequence": str(seq.root),
-        "map": str(map_dir),
-        "mode": opt.mode,
-        "device": loc.caster.device,
-        "seed": opt.seed,
-        "options": {k: (list(v) if isinstance(v, tuple) else v) for k, v in opt.__dict__.items()},
-        "first_frame": first,
-        "frames": done,
-        "frames_requested": n,
-        "interrupted": interrupted,
-        "converged_frame": state["converged_frame"],
-        "updates": state["updates"],
-        "resamples": state["resamples"],
-        "recoveries": state["recoveries"],
-        "recovery_frames": state["recovery_frames"],
-        "convergence_frames": state["convergence_frames"],
-        "vetoed_alarms": loc.vetoed_alarms,
-        "vetoed_frames": state["vetoed_frames"],
-        "skipped_scans": state["skipped_scans"],
-        "unreadable_scans": state["unreadable_scans"],
-        "odometry_source": odo_source,
-        "sensor_height_m": height,
-        "sensor_height_source": height_source,
-        "particles_initial": int(counts[0]) if done else None,
-        "seconds_total": wall,
-        "seconds_per_frame_before_convergence_median": _median(seconds[before]),
-        "seconds_per_frame_before_convergence_max": float(seconds[before].max()) if before.any() else None,
-        "seconds_per_frame_after_convergence_median": _median(seconds[after]),
-        "hz_after_convergence": (1.0 / _median(seconds[after]))
-        if after.any() and _median(seconds[after])
-        else None,
-        "calib_Tr": seq.calib_Tr.tolist(),
-    }
-    if loc.prior is not None:
-        summary["place_prior"] = {
-            "source": loc.prior_source,
-            "cells": len(loc.prior.xy),
-            "megabytes": loc.prior.nbytes / 1e6,
-            "build_seconds": loc.prior.build_s,
-        }
-    if truth is not None and done:
-        conv = state["converged_frame"]
+        self.metrics: dict | None = None
+
+    def run(self) -> dict:
+        self.load()  # sequence, map, odometry, frame range, sensor height: every check before any output
+        self.start_filter()  # the localizer, spread (global) or started at the initial pose (tracking)
+        self.filter_frames()  # one step per frame, frames.csv appended as it goes
+        self.write_estimates()  # estimate_kitti.txt, estimate_tum.txt, particles.npz
+        self.evaluate()  # metrics.json against the sequence's poses
+        summary = self.write_summary()  # summary.json
+        self.plot()  # the PNGs
+        if self.log.interrupted:
+            raise KeyboardInterrupt
+        return summary
+
+    # --- steps -------------------------------------------------------------------------------------------
+
+    def load(self) -> None:
+        opt, settings = self.opt, self.settings
+        settings.check()
+        if opt.mode not in ("global", "tracking"):
+            raise InputError(f"mode {opt.mode!r}: expected 'global' or 'tracking'")
+        if opt.particles is not None and opt.particles <= 0:
+            raise InputError(f"particles must be > 0, got {opt.particles}")
+        self.seq = seq = load_sequence(self.seq_dir)
+        if len(seq) == 0:
+            raise InputError(f"{seq.root}: the sequence has no scans")
+        self.map = MeshMap.load(self.map_dir)
+        check_map_frame(seq, self.map)
+        self.odo, self.odo_source = odometry_xyyaw(seq, opt.odometry_from_poses)
+        self.first = int(opt.first_frame)
+        if not 0 <= self.first < len(seq):
+            raise InputError(f"first frame {self.first} out of range (the sequence has {len(seq)} frames)")
+        self.last = len(seq) if opt.frames is None else min(len(seq), self.first + int(opt.frames))
+        self.height, self.height_source = _sensor_height(seq, self.map, settings)
+        self.truth = xyyaw_of(seq.poses) if seq.poses is not None else None
+        if self.opt.mode == "tracking":
+            self.events["converged_frame"] = self.first
+
+    def start_filter(self) -> None:
+        opt, seq = self.opt, self.seq
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.loc = loc = MonteCarloLocalizer(
+            self.map,
+            self.settings,
+            rng=np.random.default_rng(opt.seed),
+            device=opt.device,
+            threads=opt.threads,
+            sensor_height_m=self.height,
+        )
+        if opt.mode == "global":
+            loc.spread(opt.particles)
+        else:
+            if opt.init_pose is not None:
+                start = np.asarray(opt.init_pose, np.float64)
+            elif self.truth is not None:
+                start = self.truth[self.first]
+            else:
+                raise InputError(
+                    f"{seq.root}: tracking mode needs --init-pose (the sequence has no poses.txt)"
+                )
+            loc.start_at(start, opt.particles)
+        write_config(self.settings, self.out_dir / "config.yaml")  # feeds back in with --config
+
+    def filter_frames(self) -> None:
+        seq, loc, first, last, ev = self.seq, self.loc, self.first, self.last, self.events
+        period = self.period = _frame_period(seq)
+        self.log = log = FrameLog.empty(last - first)
+        snap_at = set(np.linspace(first, last - 1, 4).astype(int).tolist())
+        csv = (self.out_dir / "frames.csv").open("w")
+        csv.write(FRAME_COLUMNS + "\n")
+        bar = _Progress(last - first, self.opt.progress)
+        clock = time.perf_counter()
+        try:
+            for k, i in enumerate(range(first, last)):
+                delta = se2_between(self.odo[i - 1], self.odo[i]) if i > first else np.zeros(3)
+                points = fire = None
+                try:
+                    points = seq.scan(i)
+                    fire = seq.point_meta(i).get("time_s")
+                except InputError:
+                    ev["unreadable_scans"] += 1
+                rp = tuple(seq.imu_roll_pitch[i]) if seq.imu_roll_pitch is not None else None
+                searching = not loc.converged and self.opt.mode == "global"
+                if k == 0 or i in snap_at or (searching and k % 10 == 0 and len(self.snapshots) < 8):
+                    self.snapshots[f"frame_{i:06d}"] = loc.particles.copy()
+                info = loc.step(delta, points, fire_time_s=fire, frame_period_s=period, roll_pitch=rp)
+                self._record(k, i, info)
+                csv.write(self._csv_line(i, info))
+                csv.flush()
+                log.done = k + 1
+                bar.update(info)
+        except KeyboardInterrupt:
+            log.interrupted = True
+        finally:
+            csv.close()
+            bar.close()
+        log.wall_s = time.perf_counter() - clock
+        log.trim()
+
+    def write_estimates(self) -> None:
+        log, seq, first = self.log, self.seq, self.first
+        if log.done:
+            poses = _poses_4x4(log.estimate, self.loc, seq, first)
+            write_poses_txt(self.out_dir / "estimate_kitti.txt", poses @ np.linalg.inv(seq.calib_Tr))
+            times = (
+                seq.times[first : first + log.done]
+                if seq.times is not None
+                else np.arange(log.done) * (self.period or 0.1)
+            )
+            atomic_write(self.out_dir / "estimate_tum.txt", "\n".join(poses_to_tum(poses, times)) + "\n")
+        if self.snapshots:
+            atomic_write(self.out_dir / "particles.npz", lambda fh: np.savez(fh, **self.snapshots))
+
+    def evaluate(self) -> None:
+        if self.truth is None or not self.log.done:
+            return
+        first, ev = self.first, self.events
+        conv = ev["converged_frame"]
         metrics = localization_metrics(
-            est,
-            truth[first : first + done],
+            self.log.estimate,
+            self.truth[first : first + self.log.done],
             None if conv is None else conv - first,
-            convergence_frames=[f - first for f in state["convergence_frames"]],
-            recovery_frames=[f - first for f in state["recovery_frames"]],
+            convergence_frames=[f - first for f in ev["convergence_frames"]],
+            recovery_frames=[f - first for f in ev["recovery_frames"]],
         )
         shift_event_frames(metrics, first)
         metrics["first_frame"] = first
-        atomic_write(out_dir / "metrics.json", json.dumps(metrics, indent=2) + "\n")
-        summary["metrics"] = {
-            k: metrics.get(k)
-            for k in (
-                "success",
-                "location_rmse_m",
-                "yaw_rmse_deg",
-                "converged_frame",
-                "wrong_convergences_count",
-                "wrong_convergences_uncaught",
-                "false_alarms_count",
-            )
+        atomic_write(self.out_dir / "metrics.json", json.dumps(metrics, indent=2) + "\n")
+        self.metrics = metrics
+
+    def write_summary(self) -> dict:
+        log, ev, seq, loc, opt = self.log, self.events, self.seq, self.loc, self.opt
+        after = log.converged & (log.particles <= self.settings.particles.converged_count)
+        before = ~log.converged
+        summary = {
+            "sequence": str(seq.root),
+            "map": str(self.map_dir),
+            "mode": opt.mode,
+            "device": loc.caster.device,
+            "seed": opt.seed,
+            "options": {k: (list(v) if isinstance(v, tuple) else v) for k, v in opt.__dict__.items()},
+            "first_frame": self.first,
+            "frames": log.done,
+            "frames_requested": self.last - self.first,
+            "interrupted": log.interrupted,
+            "converged_frame": ev["converged_frame"],
+            "updates": ev["updates"],
+            "resamples": ev["resamples"],
+            "recoveries": ev["recoveries"],
+            "recovery_frames": ev["recovery_frames"],
+            "convergence_frames": ev["convergence_frames"],
+            "vetoed_alarms": loc.vetoed_alarms,
+            "vetoed_frames": ev["vetoed_frames"],
+            "skipped_scans": ev["skipped_scans"],
+            "unreadable_scans": ev["unreadable_scans"],
+            "odometry_source": self.odo_source,
+            "sensor_height_m": self.height,
+            "sensor_height_source": self.height_source,
+            "particles_initial": int(log.particles[0]) if log.done else None,
+            "seconds_total": log.wall_s,
+            "seconds_per_frame_before_convergence_median": _median(log.seconds[before]),
+            "seconds_per_frame_before_convergence_max": float(log.seconds[before].max())
+            if before.any()
+            else None,
+            "seconds_per_frame_after_convergence_median": _median(log.seconds[after]),
+            "hz_after_convergence": (1.0 / _median(log.seconds[after]))
+            if after.any() and _median(log.seconds[after])
+            else None,
+            "calib_Tr": seq.calib_Tr.tolist(),
         }
-    atomic_write(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
-    if opt.plots and done:
+        if loc.prior is not None:
+            summary["place_prior"] = {
+                "source": loc.prior_source,
+                "cells": len(loc.prior.xy),
+                "megabytes": loc.prior.nbytes / 1e6,
+                "build_seconds": loc.prior.build_s,
+            }
+        if self.metrics is not None:
+            summary["metrics"] = {
+                k: self.metrics.get(k)
+                for k in (
+                    "success",
+                    "location_rmse_m",
+                    "yaw_rmse_deg",
+                    "converged_frame",
+                    "wrong_convergences_count",
+                    "wrong_convergences_uncaught",
+                    "false_alarms_count",
+                )
+            }
+        atomic_write(self.out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
+        return summary
+
+    def plot(self) -> None:
+        if not (self.opt.plots and self.log.done):
+            return
         from rangemcl.plots import plot_localization
 
+        first = self.first
         plot_localization(
-            out_dir,
-            mesh_map,
-            est,
-            truth[first : first + done] if truth is not None else None,
+            self.out_dir,
+            self.map,
+            self.log.estimate,
+            self.truth[first : first + self.log.done] if self.truth is not None else None,
             first,
-            state["converged_frame"],
-            snapshots,
+            self.events["converged_frame"],
+            self.snapshots,
         )
-    if interrupted:
-        raise KeyboardInterrupt
-    return summary
+
+    # --- per frame ---------------------------------------------------------------------------------------
+
+    def _record(self, k: int, i: int, info) -> None:
+        log, ev = self.log, self.events
+        log.estimate[k] = info.estimate
+        log.particles[k] = info.particles
+        log.seconds[k] = info.seconds
+        log.converged[k] = info.converged
+        ev["updates"] += info.updated
+        ev["resamples"] += info.resampled
+        ev["skipped_scans"] += info.skipped_scan
+        if info.recovered:
+            ev["recoveries"] += 1
+            ev["recovery_frames"].append(i)
+            ev["converged_frame"] = None
+        if info.converged_now:
+            ev["convergence_frames"].append(i)
+        if info.vetoed:
+            ev["vetoed_frames"].append(i)
+        if info.converged and ev["converged_frame"] is None:
+            ev["converged_frame"] = i
+            self.snapshots[f"frame_{i:06d}_converged"] = self.loc.particles.copy()
+
+    def _csv_line(self, i: int, info) -> str:
+        seq, e = self.seq, info.estimate
+        t = seq.times[i] if seq.times is not None else i * (self.period or 0.1)
+        return (
+            f"{i},{t:.6f},{e[0]:.4f},{e[1]:.4f},{e[2]:.6f},{info.particles},{int(info.converged)},"
+            f"{int(info.updated)},{int(info.resampled)},{int(info.skipped_scan)},{int(info.recovered)},"
+            f"{info.best_residual_m:.4f},{info.seconds:.4f},{info.hypotheses},{info.evidence_nats:.3f},"
+            f"{info.inliers:.3f},{int(info.vetoed)}\n"
+        )
 
 
 def _median(x: np.ndarray) -> float | None:
