@@ -221,3 +221,48 @@ def test_a_satellite_of_the_leader_is_no_rival():
     assert t.update([h(0.7, 0.0), h(0.29, 4.0), h(0.001, 40.0)], True, 1.0)  # 4 m behind: same place
     assert t.margin == pytest.approx(math.log(0.7 / 0.001))
     assert not t.update([h(0.7, 0.0), h(0.29, 6.0), h(0.001, 40.0)], True, 1.0)  # 6 m: a rival
+
+
+@pytest.mark.parametrize("second_opinion", [True, False])
+def test_the_second_opinion_vetoes_alarms_where_no_other_place_fits_better(second_opinion):
+    """A lorry row the map never had hides part of the street; with a watch made touchy on purpose it
+    raises suspicions, and the second opinion (the prior's best places for the scan, scored alike) finds
+    no place that fits better, so the filter stays, and counts the vetoes; without it, the same
+    suspicion re-spreads the particles (a false alarm)."""
+    parts = [
+        meshgen.grid_patch((-20.0, -30.0, 0.0), (160.0, 0, 0), (0, 60.0, 0), 40, 15),
+        *street(0.0, 0.0, False),
+    ]
+    lorries = [meshgen.box((8.0, 2.5, 3.5), (x, 4.5, 1.75), cell_m=1.0) for x in np.arange(40.0, 90.0, 9.0)]
+    v_map, f_map = meshgen.merge(parts)
+    v_world, f_world = meshgen.merge(parts + lorries)
+    world = RayCaster(threads=2)
+    world.add_mesh(v_world, f_world, name="world")
+    m = MeshMap.from_mesh(v_map, f_map, tile_size_m=50.0, meta={"sensor_height_m": HEIGHT})
+    xs = np.arange(-5.0, 140.0, 1.0)
+    m.drive_xy = np.column_stack([xs, np.zeros_like(xs)])
+    geo = RangeImageGeometry.for_spec(load_spec("vlp-16").with_columns(360))
+    path = np.column_stack([np.arange(0.0, 100.0, 0.8), np.zeros(125), np.zeros(125)])
+    s = twin_settings()
+    s.recovery.second_opinion = second_opinion
+    s.recovery.inlier_factor = 0.97  # touchy: any dip of the inlier share is a bad update ...
+    s.recovery.updates = 2  # ... and two in a row a suspicion
+    s.recovery.max_vetoed_updates = 1000  # (the lorries stay in view for most of the drive)
+    loc = MonteCarloLocalizer(m, s, seed=5)
+    loc.start_at(path[0])
+    rng = np.random.default_rng(6)
+    err, recovered, vetoed = [], [], 0
+    for k in range(len(path)):
+        delta = se2_between(path[k - 1], path[k]) if k else np.zeros(3)
+        info = loc.step(delta + rng.normal(0, [0.01, 0.003, 0.002]) * (k > 0), scan_at(world, geo, path[k]))
+        err.append(float(np.hypot(*(info.estimate[:2] - path[k, :2]))))
+        vetoed += info.vetoed
+        if info.recovered:
+            recovered.append(k)
+            break
+    if not second_opinion:
+        assert recovered, "the touchy watch was expected to raise an alarm here"
+        return
+    assert not recovered, f"false alarm at frame {recovered} after {vetoed} vetoes"
+    assert vetoed >= 1 and loc.vetoed_alarms >= 1  # the watch did raise suspicions
+    assert max(err) < 0.5
