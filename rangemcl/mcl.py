@@ -160,6 +160,8 @@ class RecoverySettings:
     opinion_per_place: int = 16  # ... each with this many particles over its cell
     opinion_inlier_gain: float = 0.15  # better: inlier share higher by this (and a lower residual)
     opinion_badness_ratio: float = 0.7  # ... or, for models without an inlier share, badness below this x
+    opinion_min_range_m: float = 5.0  # the opinion compares rays measured at least this far (a van or a
+    # bus alongside hides half the scan at 2-4 m and fits any wall: measured on the town_medium suite)
     max_vetoed_updates: int = 30  # a suspicion lasting this many updates is lost all the same
     probation_updates: int = 10  # after each convergence, a second opinion at this many updates ...
     probation_hits: int = 2  # ... lost when it finds a better place this many times in a row
@@ -210,6 +212,7 @@ class LocalizerSettings:
             "recovery.max_vetoed_updates": r.max_vetoed_updates,
             "recovery.probation_hits": r.probation_hits,
             "recovery.opinion_badness_ratio": r.opinion_badness_ratio,
+            "recovery.opinion_min_range_m": r.opinion_min_range_m,
             "convergence.cluster_m": c.cluster_m,
             "convergence.min_cluster_particles": c.min_cluster_particles,
             "convergence.max_clusters": c.max_clusters,
@@ -804,7 +807,7 @@ class MonteCarloLocalizer:
             return False
         if not (r.second_opinion and self.settings.init.place_prior and level is not None):
             return suspicious
-        opinion = self._second_opinion(rays, best, inliers, level())
+        opinion = self._second_opinion(rays, level())
         if not suspicious:
             self._probation_hits = self._probation_hits + 1 if opinion is not None and opinion.better else 0
             return self._probation_hits >= r.probation_hits
@@ -815,12 +818,21 @@ class MonteCarloLocalizer:
         out["vetoed"] = True
         return False
 
-    def _second_opinion(
-        self, rays: ScanRays, best: float, inliers: float, levelled: np.ndarray
-    ) -> Opinion | None:
-        """:func:`rangemcl.localization.lost.second_opinion` on the prior's best places for this scan;
-        None when the scan has too little in the prior's height band to compare."""
+    def _second_opinion(self, rays: ScanRays, levelled: np.ndarray) -> Opinion | None:
+        """:func:`rangemcl.localization.lost.second_opinion` on the prior's best places for this scan,
+        with the rays measured at least ``opinion_min_range_m`` away (near objects, vehicles alongside
+        above all, fit any wall); the filter's own cloud is scored on the same rays. ``None`` when the
+        scan has too little in the prior's height band, or too few far rays, to compare."""
         r = self.settings.recovery
+        far = rays.ranges >= r.opinion_min_range_m
+        if far.sum() < max(20, 0.1 * len(far)):
+            return None
+        sub = ScanRays(
+            rays.directions[far],
+            rays.ranges[far],
+            rays.valid_points,
+            None if rays.structure is None else rays.structure[far],
+        )
         prior = self.place_prior()
         xy, yaw, _cost, known = prior.candidates(levelled, self.sensor_height_m, r.opinion_top)
         if known < max(8, prior.params.bins // 20):
@@ -835,14 +847,16 @@ class MonteCarloLocalizer:
         )
 
         def score(p: np.ndarray):
-            _loglik, bad = self.scorer.score(rays, p, self.sensor_z(p[:, :2]))
+            _loglik, bad = self.scorer.score(sub, p, self.sensor_z(p[:, :2]))
             return bad, self.scorer.last_inliers
 
+        own_bad, own_inl = score(self.particles)
+        j = int(np.argmin(own_bad))
         return second_opinion(
             score,
             self.last_estimate,
-            best,
-            inliers,
+            float(own_bad[j]),
+            float(own_inl[j]) if own_inl is not None else math.nan,
             cand,
             min_distance_m=self.settings.convergence.separation_m,
             inlier_gain=r.opinion_inlier_gain,
