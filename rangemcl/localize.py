@@ -34,7 +34,13 @@ from rangemcl.dataset import Sequence, load_sequence, poses_to_tum, write_poses_
 from rangemcl.errors import InputError
 from rangemcl.evaluate import localization_metrics, shift_event_frames, xyyaw_of
 from rangemcl.mapping.meshmap import MeshMap
-from rangemcl.mcl import LocalizerSettings, MonteCarloLocalizer, rotation_roll_pitch, se2_between
+from rangemcl.mcl import (
+    LocalizerSettings,
+    MonteCarloLocalizer,
+    build_localizer,
+    rotation_roll_pitch,
+    se2_between,
+)
 
 FRAME_COLUMNS = (
     "frame,time_s,x,y,yaw,particles,converged,updated,resampled,skipped_scan,recovered,"
@@ -199,7 +205,7 @@ class LocalizationPipeline:
     def start_filter(self) -> None:
         opt, seq = self.opt, self.seq
         self.out_dir.mkdir(parents=True, exist_ok=True)
-        self.loc = loc = MonteCarloLocalizer(
+        self.loc = loc = build_localizer(
             self.map,
             self.settings,
             rng=np.random.default_rng(opt.seed),

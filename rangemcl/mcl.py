@@ -1,67 +1,45 @@
-"""Monte Carlo localization over ``(x, y, yaw)`` in a mesh map, weighted by the range-image observation
-model (paper Eq. 5): :class:`MonteCarloLocalizer`.
+"""The localizer's settings (the YAML of ``rangemcl localize --config``, one dataclass per part, checked
+by :meth:`LocalizerSettings.check`) and :func:`build_localizer`, which makes the filter core
+(:class:`rangemcl.localization.filter.MonteCarloLocalizer`, plain constructor arguments) from them.
 
-One step per LiDAR frame (:meth:`MonteCarloLocalizer.step`):
-
-1. The frame's odometry increment is accumulated. Particles move (odometry motion model, noise growing
-   with the motion) and are weighted only once the car has moved ``update_distance_m`` or turned
-   ``update_angle_deg`` since the last update; between updates the estimate follows the odometry.
-2. Update: a subset of the scan's valid points is de-skewed with the frame's odometry (each point from
-   the pose at its own firing time), levelled with the IMU's roll and pitch, and cast from every particle
-   (sensor at the map's ground height under the particle plus the mounting height). Log-weights add
-   ``−½ d² / σ_d²``; low-variance resampling when ``N_eff < 0.75 N``, weights reset after it.
-3. Global localization starts from particles spread uniformly over the mapped drivable area with uniform
-   yaw. Convergence is decided by tiles (all particles in ``N_conv`` tiles, as in the paper), guarded by
-   the cloud's size; then the particle count drops (10,000 → 100 by default).
-4. Recovery: when even the best particle disagrees with the scan for several updates in a row (its mean
-   residual far above what it was while tracking), the particles are spread again and the filter
-   relocalizes; the reference code, whose particle reduction cannot be undone, stays lost.
-
-All randomness comes from the generator handed in (or made from ``seed``).
+The filter's stages live in :mod:`rangemcl.localization`: scan preparation (``scan_prep``), the drivable
+area (``spread``), the place prior (``place_prior``), the hypothesis search (``hypotheses``), lost
+detection (``lost``) and the core that composes them (``filter``). This module re-exports the core's
+names (``MonteCarloLocalizer``, ``StepInfo``) and the SE(2) helpers that callers used to take from here.
 """
 
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from rangemcl.errors import InputError
-from rangemcl.localization.hypotheses import (
-    ConvergenceTest,
-    cluster_labels,
-    kld_sample_size,
-    occupied_bins,
-    resample_by_cluster,
-    summarize,
-)
-from rangemcl.localization.lost import Opinion, SignalWatch, candidate_particles, second_opinion
-from rangemcl.localization.place_prior import PlacePrior, PriorParams, load_or_build
-from rangemcl.localization.scan_prep import (
-    RAY_SAMPLINGS,
-    ScanRays,
-    select_rays,
-)
+from rangemcl.localization.filter import MonteCarloLocalizer, StepInfo
+from rangemcl.localization.lost import LostDetector, SignalWatch
+from rangemcl.localization.place_prior import PriorParams
+from rangemcl.localization.scan_prep import RAY_SAMPLINGS, ScanRays, select_rays
+from rangemcl.localization.spread import DrivableArea, drivable_cells
 from rangemcl.mapping.meshmap import MeshMap
 from rangemcl.observation import ObservationModel
-from rangemcl.particles import (
-    MotionNoise,
-    effective_sample_size,
-    low_variance_resample,
-    normalize_log_weights,
-    pose_estimate,
-    sample_motion,
-)
+from rangemcl.particles import MotionNoise
 from rangemcl.raycast import RayCaster
-from rangemcl.se2 import (  # noqa: F401 - rotation_roll_pitch, se2_between: re-exported
-    odometry_increment,
-    rotation_roll_pitch,
-    se2_between,
-    se2_compose,
-    wrap_angle,
-)
+from rangemcl.se2 import rotation_roll_pitch, se2_between, se2_compose, wrap_angle
+
+__all__ = [
+    "DrivableArea",
+    "LocalizerSettings",
+    "MonteCarloLocalizer",
+    "StepInfo",
+    "build_localizer",
+    "drivable_cells",
+    "prepare_rays",
+    "rotation_roll_pitch",
+    "se2_between",
+    "se2_compose",
+    "wrap_angle",
+]
 
 # ---------------------------------------------------------------------------------------------- settings
 
@@ -353,548 +331,133 @@ def prepare_rays(
 # ---------------------------------------------------------------------------------------------- the filter
 
 
-@dataclass
-class StepInfo:
-    """What one :meth:`MonteCarloLocalizer.step` did."""
-
-    estimate: np.ndarray  # (3,) x, y, yaw
-    particles: int
-    converged: bool
-    updated: bool  # particles were moved and weighted this frame
-    resampled: bool
-    skipped_scan: bool  # the scan had no valid point (prediction only)
-    best_residual_m: float  # best particle's mean residual at this update (NaN without an update)
-    neff: float
-    recovered: bool  # the filter declared itself lost and spread the particles again
-    seconds: float
-    hypotheses: int = 0  # clusters while searching (0 once converged or without an update)
-    evidence_nats: float = math.nan  # the leader's log weight share over the runner-up's (searching)
-    inliers: float = math.nan  # the best particle's inlier share (models that report it)
-    converged_now: bool = False  # convergence was declared at this update
-    vetoed: bool = False  # a lost suspicion at this update was vetoed by the second opinion
-
-
-class MonteCarloLocalizer:
-    """Particle filter over ``(x, y, yaw)`` in a :class:`MeshMap` (see the module docstring).
+def build_localizer(
+    mesh_map: MeshMap,
+    settings: LocalizerSettings | None = None,
+    *,
+    rng: np.random.Generator | None = None,
+    seed: int | None = None,
+    device: str = "cpu",
+    threads: int | None = None,
+    sensor_height_m: float | None = None,
+    caster: RayCaster | None = None,
+) -> MonteCarloLocalizer:
+    """A :class:`~rangemcl.localization.filter.MonteCarloLocalizer` made from the settings (checked
+    first; an InputError names the key).
 
     Args:
         mesh_map: the map (its ground grid gives each particle's height).
-        settings: :class:`LocalizerSettings`.
+        settings: :class:`LocalizerSettings` (default: the defaults).
         rng: the run's generator (or give ``seed``).
         device: Warp device, ``"cpu"`` or ``"cuda"``.
         threads: CPU threads for the ray casting (None: all cores).
         sensor_height_m: the sensor's height above the ground (default: settings, then the map, then 1.73).
         caster: an existing :class:`RayCaster` holding the map (shared between filters), else one is made.
     """
+    from functools import partial
 
-    def __init__(
-        self,
-        mesh_map: MeshMap,
-        settings: LocalizerSettings | None = None,
-        *,
-        rng: np.random.Generator | None = None,
-        seed: int | None = None,
-        device: str = "cpu",
-        threads: int | None = None,
-        sensor_height_m: float | None = None,
-        caster: RayCaster | None = None,
-    ):
-        self.settings = settings or LocalizerSettings()
-        self.settings.check()
-        self.map = mesh_map
-        self.rng = rng if rng is not None else np.random.default_rng(seed)
-        height = sensor_height_m if sensor_height_m is not None else self.settings.sensor_height_m
-        if height is None:
-            height = mesh_map.meta.get("sensor_height_m", 1.73)
-        self.sensor_height_m = float(height)
-        if caster is None:
-            caster = RayCaster(device, threads)
-            caster.add_mesh(mesh_map.vertices, mesh_map.faces, name="map")
-        self.caster = caster
-        o = self.settings.observation
-        from rangemcl.models import RangeModel, make_model
+    from rangemcl.models import RangeModel, make_model
 
-        self.scorer = make_model(o.model, caster, o, mesh_map)
-        # Eq. 5 residuals (residuals()): the range model's own kernel, or one of the same settings
-        self.model = (
-            self.scorer.kernel
-            if isinstance(self.scorer, RangeModel)
-            else ObservationModel(
-                caster, sigma_m=o.sigma_m, margin_m=o.margin_m, cap_m=np.inf if o.cap_m is None else o.cap_m
-            )
+    s = settings or LocalizerSettings()
+    s.check()
+    p, m, o, c, r, i = s.particles, s.motion, s.observation, s.convergence, s.recovery, s.init
+    height = sensor_height_m if sensor_height_m is not None else s.sensor_height_m
+    if height is None:
+        height = mesh_map.meta.get("sensor_height_m", 1.73)
+    if caster is None:
+        caster = RayCaster(device, threads)
+        caster.add_mesh(mesh_map.vertices, mesh_map.faces, name="map")
+    scorer = make_model(o.model, caster, o, mesh_map)
+    # Eq. 5 residuals (residuals()): the range model's own kernel, or one of the same settings
+    residual_model = (
+        scorer.kernel
+        if isinstance(scorer, RangeModel)
+        else ObservationModel(
+            caster, sigma_m=o.sigma_m, margin_m=o.margin_m, cap_m=np.inf if o.cap_m is None else o.cap_m
         )
-        m = self.settings.motion
-        self.noise = MotionNoise(m.rot_per_rot, m.rot_per_trans, m.trans_per_trans, m.trans_per_rot)
-        self.init_cells = drivable_cells(mesh_map, self.settings.init)
-        c = self.settings.convergence
-        self.convergence_test = ConvergenceTest(
-            c.margin_nats, c.min_distance_m, c.compact_radius_m, c.separation_m
-        )
-        self.prior: PlacePrior | None = None
-        self.prior_source = ""
-        self.particles = np.zeros((0, 3))
-        self.log_w = np.zeros(0)
-        self.converged = False
-        self.converged_updates = 0
-        self.pending = np.zeros(3)  # odometry since the last update, in the pose at that update
-        self.last_estimate = np.zeros(3)
-        self.recoveries = 0
-        r = self.settings.recovery
-        self.watch = SignalWatch(
+    )
+    lost = None
+    if r.enabled:
+        watch = SignalWatch(
             signal=r.signal,
             inlier_factor=r.inlier_factor,
             inlier_residual_factor=r.inlier_residual_factor,
             inlier_residual_jump=r.inlier_residual_jump,
             residual_factor=r.factor,
-            floor=self.scorer.lost_floor if r.min_residual_m is None else r.min_residual_m,
+            floor=scorer.lost_floor if r.min_residual_m is None else r.min_residual_m,
             updates=r.updates,
             history=r.history,
         )
-        self.vetoed_alarms = 0  # lost suspicions that the second opinion vetoed (episodes)
-        self._probation = 0  # updates left in which each update gets a second opinion
-        self._probation_hits = 0
-        self._spread_count = self.settings.particles.global_count
-        self._prior_pending = False  # a global spread waits for a scan to draw from the prior
-        self._leader: np.ndarray | None = None  # per particle: descends from the last leading cluster
-        self._moved_m = 0.0
-        self.hypotheses: list = []  # the search's clusters at the last update, largest share first
-
-    # --- initialisation ---------------------------------------------------------------------------------
-
-    def place_prior(self) -> PlacePrior:
-        """The map's place prior (loaded from the map folder, else rendered once and stored there)."""
-        if self.prior is None:
-            i = self.settings.init
-            area = self.init_cells
-            self.prior, self.prior_source = load_or_build(
-                self.map, self.caster, area.corners, area.cell_m, PriorParams(cell_m=i.prior_cell_m)
-            )
-        return self.prior
-
-    def spread(self, n: int | None = None) -> None:
-        """Global localization: ``n`` particles uniform over the drivable area; yaw along the mapping
-        drive (either way) where the map keeps it, with a share of uniform yaw, else uniform. With the
-        place prior on, a share of them is redrawn at the first update from the places that match that
-        scan (:mod:`rangemcl.localization.place_prior`)."""
-        n = int(n or self.settings.particles.global_count)
-        self._spread_count = n
-        self._set_particles(self._uniform(n))
-        self.converged = False
-        self._prior_pending = self.settings.init.place_prior
-        if self._prior_pending:
-            self.place_prior()
-        self.convergence_test.reset()
-
-    def _uniform(self, n: int) -> np.ndarray:
-        area = self.init_cells
-        k = self.rng.integers(0, len(area.corners), n)
-        xy = area.corners[k] + self.rng.uniform(0.0, area.cell_m, (n, 2))
-        yaw = self.rng.uniform(-np.pi, np.pi, n)
-        if area.headings is not None:
-            init = self.settings.init
-            along = self.rng.uniform(0.0, 1.0, n) >= init.uniform_yaw_share
-            m = int(along.sum())
-            yaw[along] = wrap_angle(
-                area.headings[k[along]]
-                + np.pi * self.rng.integers(0, 2, m)
-                + self.rng.normal(0.0, math.radians(init.heading_sigma_deg), m)
-            )
-        return np.column_stack([xy, yaw])
-
-    def _from_prior(self, n: int, levelled_points: np.ndarray, top: int | None = None) -> np.ndarray | None:
-        """``n`` particles around the prior's ``top`` best places for this scan (default ``prior_top``,
-        at most 2 % of the map's cells); None when the scan has too few points in the prior's height band
-        to compare."""
-        i = self.settings.init
-        prior = self.place_prior()
-        top = min(top or i.prior_top, max(20, len(prior.xy) // 50))
-        xy, yaw, _cost, known = prior.candidates(levelled_points, self.sensor_height_m, top)
-        if known < max(8, prior.params.bins // 20) or n <= 0:
-            return None
-        k = self.rng.integers(0, len(xy), n)
-        half = 0.5 * prior.params.cell_m
-        out = np.empty((n, 3))
-        out[:, :2] = xy[k] + self.rng.uniform(-half, half, (n, 2))
-        out[:, 2] = wrap_angle(yaw[k] + self.rng.normal(0.0, math.radians(i.prior_yaw_sigma_deg), n))
-        return out
-
-    def start_at(self, pose_xyyaw, n: int | None = None) -> None:
-        """Pose tracking: ``n`` particles around a known start pose."""
-        p = self.settings.particles
-        n = int(n or p.tracking_count)
-        x0 = np.asarray(pose_xyyaw, np.float64).reshape(3)
-        if not np.isfinite(x0).all():
-            raise InputError(f"initial pose must be finite, got {x0}")
-        if self.map.tile_at(x0[0], x0[1]) < 0:
-            raise InputError(
-                f"initial pose ({x0[0]:.1f}, {x0[1]:.1f}) lies outside the map's tiles "
-                f"(extent x {self.map.extent[0]:.0f}..{self.map.extent[3]:.0f}, "
-                f"y {self.map.extent[1]:.0f}..{self.map.extent[4]:.0f}): is the map in the sequence's frame?"
-            )
-        s = np.array([p.tracking_sigma_xy_m, p.tracking_sigma_xy_m, math.radians(p.tracking_sigma_yaw_deg)])
-        parts = x0 + self.rng.normal(0.0, 1.0, (n, 3)) * s
-        parts[:, 2] = wrap_angle(parts[:, 2])
-        self._set_particles(parts)
-        self.converged = True
-        self._prior_pending = False
-        self.last_estimate = x0.copy()
-
-    def _set_particles(self, particles: np.ndarray) -> None:
-        self.particles = np.asarray(particles, np.float64)
-        self.log_w = np.zeros(len(self.particles))
-        self.pending = np.zeros(3)
-        self.watch.reset()
-        self._probation = 0
-        self._probation_hits = 0
-        self._leader = None
-        self.last_estimate = pose_estimate(
-            self.particles, self.weights, self.settings.particles.estimate_best_share
+        lost = LostDetector(
+            watch,
+            second_opinion=r.second_opinion,
+            opinion_top=r.opinion_top,
+            opinion_per_place=r.opinion_per_place,
+            opinion_inlier_gain=r.opinion_inlier_gain,
+            opinion_badness_ratio=r.opinion_badness_ratio,
+            opinion_min_range_m=r.opinion_min_range_m,
+            max_vetoed_updates=r.max_vetoed_updates,
+            probation_updates=r.probation_updates,
+            probation_hits=r.probation_hits,
         )
-
-    @property
-    def weights(self) -> np.ndarray:
-        return normalize_log_weights(self.log_w) if len(self.log_w) else self.log_w
-
-    def estimate(self) -> np.ndarray:
-        """Current pose estimate ``(x, y, yaw)``: the last update's estimate moved by the odometry since."""
-        return se2_compose(self.last_estimate, self.pending)
-
-    # --- one frame ---------------------------------------------------------------------------------------
-
-    def step(
-        self,
-        odometry_delta,
-        points: np.ndarray | None,
-        *,
-        fire_time_s: np.ndarray | None = None,
-        frame_period_s: float | None = None,
-        roll_pitch: tuple[float, float] | None = None,
-    ) -> StepInfo:
-        """One LiDAR frame: ``odometry_delta`` ``(dx, dy, dyaw)`` is the car's motion since the previous
-        frame in the previous frame's pose; ``points`` the scan ``(M, 3)`` in the sensor frame (None or
-        empty: predict only)."""
-        if len(self.particles) == 0:
-            raise InputError("the filter has no particles: call spread() or start_at() first")
-        t0 = time.perf_counter()
-        delta = np.asarray(odometry_delta, np.float64).reshape(3)
-        if not np.isfinite(delta).all():
-            raise InputError(f"odometry increment must be finite, got {delta}")
-        self.pending = se2_compose(self.pending, delta)
-        m = self.settings.motion
-        due = math.hypot(self.pending[0], self.pending[1]) >= m.update_distance_m or abs(
-            self.pending[2]
-        ) >= math.radians(m.update_angle_deg)
-        info = dict(
-            updated=False, resampled=False, skipped_scan=False, best_residual_m=math.nan, recovered=False
-        )
-        if due:
-            rays = None
-            if points is not None and len(points):
-                rays = prepare_rays(
-                    points,
-                    self.settings.observation,
-                    self.rng,
-                    fire_time_s=fire_time_s,
-                    frame_period_s=frame_period_s,
-                    frame_motion=delta,
-                    roll_pitch=roll_pitch,
-                    sensor_height_m=self.sensor_height_m,
-                )
-            self._move()
-            if rays is None:
-                info["skipped_scan"] = True
-            else:
-
-                def level() -> np.ndarray:
-                    out = np.asarray(points, np.float64).reshape(-1, 3)
-                    if roll_pitch is not None and self.settings.observation.level_with_imu:
-                        out = out @ rotation_roll_pitch(*roll_pitch).T
-                    return out
-
-                levelled = level() if self._needs_prior() else None
-                if self._prior_pending and levelled is not None:
-                    self._draw_initial_prior(levelled)
-                info.update(self._weigh(rays, levelled, level))
-        w = self.weights
-        return StepInfo(
-            estimate=self.estimate(),
-            particles=len(self.particles),
-            converged=self.converged,
-            neff=effective_sample_size(w),
-            seconds=time.perf_counter() - t0,
-            **info,
-        )
-
-    def _needs_prior(self) -> bool:
-        return self.settings.init.place_prior and not self.converged
-
-    def _draw_initial_prior(self, levelled: np.ndarray) -> None:
-        n = len(self.particles)
-        k = int(round(self.settings.init.prior_share * n))
-        drawn = self._from_prior(k, levelled)
-        if drawn is None:
-            return  # too little in the scan to compare: stay uniform, try again at the next update
-        self.particles[self.rng.choice(n, k, replace=False)] = drawn
-        self.log_w = np.zeros(n)
-        self._prior_pending = False
-
-    def _move(self) -> None:
-        increment = odometry_increment(np.zeros(3), self.pending)
-        self._moved_m = float(math.hypot(self.pending[0], self.pending[1]))
-        self.particles = sample_motion(self.particles, increment, self.noise, self.rng)
-        self.last_estimate = se2_compose(self.last_estimate, self.pending)
-        self.pending = np.zeros(3)
-
-    def sensor_z(self, xy: np.ndarray) -> np.ndarray:
-        """The sensor's world z over each ``(x, y)``: the map's ground there plus the mounting height."""
-        return self.map.ground.height_at(xy[:, 0], xy[:, 1]) + self.sensor_height_m
-
-    def residuals(self, rays: ScanRays, particles: np.ndarray | None = None) -> np.ndarray:
-        """Mean residual ``d`` of Eq. 5 of each particle (default: the filter's) for these rays."""
-        p = self.particles if particles is None else np.asarray(particles, np.float64)
-        self.model.set_scan(rays.directions, rays.ranges)
-        return self.model.mean_residuals(p, self.sensor_z(p[:, :2])).astype(np.float64)
-
-    def _weigh(self, rays: ScanRays, levelled: np.ndarray | None = None, level=None) -> dict:
-        loglik, bad = self.scorer.score(rays, self.particles, self.sensor_z(self.particles[:, :2]))
-        self.log_w = self.log_w + loglik
-        best = float(bad.min())
-        inl = self.scorer.last_inliers
-        inliers = float(inl[np.argmax(loglik)]) if inl is not None and len(inl) else math.nan
-        out = dict(
-            updated=True,
-            resampled=False,
-            best_residual_m=best,
-            skipped_scan=False,
-            recovered=False,
-            inliers=inliers,
-        )
-        ps = self.settings.particles
-        w = self.weights
-        self.last_estimate = pose_estimate(self.particles, w, ps.estimate_best_share)
-        if self.converged and self._lost(rays, best, inliers, level, out):
-            self.recoveries += 1
-            self.spread(self._spread_count_for_recovery())
-            out["recovered"] = True
-            return out
-        n = len(self.particles)
-        if not self.converged:
-            if self.settings.convergence.method == "hypotheses":
-                out.update(self._search_update(w, levelled))
-            elif self._is_converged():
-                self._resample(w, min(ps.converged_count, n))
-                self.converged = True
-                self._start_probation()
-                out.update(resampled=True, converged_now=True)
-            elif effective_sample_size(w) < ps.resample_neff_ratio * n:
-                self._resample(w, n)
-                out["resampled"] = True
-        elif effective_sample_size(w) < ps.resample_neff_ratio * n:
-            self._resample(w, n)
-            out["resampled"] = True
-        if self.converged:
-            self.converged_updates += 1
-        return out
-
-    def _search_update(self, w: np.ndarray, levelled: np.ndarray | None) -> dict:
-        """One update of the hypothesis search (:mod:`rangemcl.localization.hypotheses`): cluster,
-        test for a winner, else resample cluster by cluster to the KLD size and inject prior particles."""
-        c = self.settings.convergence
-        ps = self.settings.particles
-        labels, count = cluster_labels(self.particles[:, :2], c.cluster_m)
-        hyps = summarize(self.particles, w, labels, count)
-        self.hypotheses = hyps
-        best = hyps[0]
-        same = False
-        if self._leader is not None and len(self._leader) == len(labels):
-            same = bool(self._leader[labels == best.label].mean() >= 0.5)
-        won = self.convergence_test.update(hyps, same, self._moved_m)
-        inl = self.scorer.last_inliers
-        if won and inl is not None and len(inl) == len(labels):
-            # the winner must also fit: a place that merely fits less badly than the rest has not won
-            won = float(inl[labels == best.label].max()) >= c.min_inliers
-        margin = self.convergence_test.margin
-        out = dict(resampled=True, hypotheses=len(hyps), evidence_nats=margin)
-        self.last_estimate = best.centroid.copy()  # while searching, the leading hypothesis
-        if won:
-            inside = np.flatnonzero(labels == best.label)
-            wi = w[inside] / w[inside].sum()
-            self.particles = self.particles[inside]
-            self._resample(wi, ps.converged_count)
-            self.converged = True
-            self._leader = None
-            self.last_estimate = pose_estimate(self.particles, self.weights, ps.estimate_best_share)
-            self._start_probation()
-            out["converged_now"] = True
-            return out
-        keep = [h for h in hyps if h.log_share >= best.log_share - c.prune_nats][: c.max_clusters]
-        provisional = self.particles[low_variance_resample(w, self.rng, len(w))]
-        size = kld_sample_size(occupied_bins(provisional, c.kld_bin_xy_m, c.kld_bin_yaw_deg), c.kld_epsilon)
-        size = int(np.clip(size, c.min_search_particles, max(self._spread_count, c.min_search_particles)))
-        parts, logw, origin = resample_by_cluster(
-            self.particles, w, labels, keep, size, c.min_cluster_particles, self.rng
-        )
-        n = len(parts)
-        sxy, syaw = ps.global_jitter_xy_m, math.radians(ps.global_jitter_yaw_deg)
-        parts[:, :2] += self.rng.normal(0.0, sxy, (n, 2))
-        parts[:, 2] = wrap_angle(parts[:, 2] + self.rng.normal(0.0, syaw, n))
-        leader = origin == 0
-        i = self.settings.init
-        if (
-            i.place_prior
-            and levelled is not None
-            and best.share <= i.inject_below_share
-            and i.inject_share > 0
-        ):
-            k = max(1, int(round(i.inject_share * n)))
-            fresh = self._from_prior(k, levelled, i.inject_top)
-            if fresh is not None:
-                parts = np.vstack([parts, fresh])
-                logw = np.concatenate(
-                    [logw + math.log(1.0 - i.inject_share), np.full(k, math.log(i.inject_share / k))]
-                )
-                leader = np.concatenate([leader, np.zeros(k, bool)])
-        self.particles, self.log_w, self._leader = parts, logw, leader
-        return out
-
-    def _spread_count_for_recovery(self) -> int:
-        return max(self._spread_count, self.settings.particles.global_count)
-
-    def _resample(self, w: np.ndarray, n: int) -> None:
-        ps = self.settings.particles
-        idx = low_variance_resample(w, self.rng, n)
-        parts = self.particles[idx].copy()
-        sxy, syaw = (
-            (ps.jitter_xy_m, ps.jitter_yaw_deg)
-            if self.converged
-            else (ps.global_jitter_xy_m, ps.global_jitter_yaw_deg)
-        )
-        if sxy > 0 or syaw > 0:
-            parts[:, :2] += self.rng.normal(0.0, sxy, (n, 2))
-            parts[:, 2] = wrap_angle(parts[:, 2] + self.rng.normal(0.0, math.radians(syaw), n))
-        self.particles = parts
-        self.log_w = np.zeros(n)
-
-    def _is_converged(self) -> bool:
-        c = self.settings.convergence
-        est = self.last_estimate
-        dist = np.hypot(self.particles[:, 0] - est[0], self.particles[:, 1] - est[1])
-        r95 = float(np.quantile(dist, 0.95))
-        if r95 <= c.compact_radius_m:
-            return True
-        tiles = np.unique(self.map.tile_at(self.particles[:, 0], self.particles[:, 1]))
-        return len(tiles) <= c.tiles and r95 <= c.max_radius_m
-
-    def _start_probation(self) -> None:
-        self._probation = self.settings.recovery.probation_updates
-        self._probation_hits = 0
-
-    def _lost(self, rays: ScanRays, best: float, inliers: float, level, out: dict) -> bool:
-        """Lost when the evidence watch (:class:`rangemcl.localization.lost.SignalWatch`) has been bad for
-        ``recovery.updates`` updates in a row *and* the second opinion finds a place that explains the scan
-        clearly better (else the suspicion is vetoed: the world changed, the place did not), or when a
-        suspicion outlasts ``max_vetoed_updates``; or, in the probation after a convergence, when the
-        second opinion finds a better place ``probation_hits`` times in a row. Without the place prior
-        (or with ``second_opinion`` off), the watch alone decides, as before issue 13's second opinion."""
-        r = self.settings.recovery
-        if not r.enabled:
-            return False
-        suspicious = self.watch.update(best, inliers)
-        probation = self._probation > 0
-        self._probation = max(0, self._probation - 1)
-        if not (suspicious or probation):
-            self._probation_hits = 0
-            return False
-        if not (r.second_opinion and self.settings.init.place_prior and level is not None):
-            return suspicious
-        opinion = self._second_opinion(rays, level())
-        if not suspicious:
-            self._probation_hits = self._probation_hits + 1 if opinion is not None and opinion.better else 0
-            return self._probation_hits >= r.probation_hits
-        if opinion is None or opinion.better or self.watch.bad_updates >= r.max_vetoed_updates:
-            return True
-        if self.watch.bad_updates == r.updates:
-            self.vetoed_alarms += 1
-        out["vetoed"] = True
-        return False
-
-    def _second_opinion(self, rays: ScanRays, levelled: np.ndarray) -> Opinion | None:
-        """:func:`rangemcl.localization.lost.second_opinion` on the prior's best places for this scan,
-        with the rays measured at least ``opinion_min_range_m`` away (near objects, vehicles alongside
-        above all, fit any wall); the filter's own cloud is scored on the same rays. ``None`` when the
-        scan has too little in the prior's height band, or too few far rays, to compare."""
-        r = self.settings.recovery
-        far = rays.ranges >= r.opinion_min_range_m
-        if far.sum() < max(20, 0.1 * len(far)):
-            return None
-        sub = ScanRays(
-            rays.directions[far],
-            rays.ranges[far],
-            rays.valid_points,
-            None if rays.structure is None else rays.structure[far],
-        )
-        prior = self.place_prior()
-        xy, yaw, _cost, known = prior.candidates(levelled, self.sensor_height_m, r.opinion_top)
-        if known < max(8, prior.params.bins // 20):
-            return None
-        cand = candidate_particles(
-            xy,
-            yaw,
-            r.opinion_per_place,
-            prior.params.cell_m,
-            math.radians(self.settings.init.prior_yaw_sigma_deg),
-            self.rng,
-        )
-
-        def score(p: np.ndarray):
-            _loglik, bad = self.scorer.score(sub, p, self.sensor_z(p[:, :2]))
-            return bad, self.scorer.last_inliers
-
-        own_bad, own_inl = score(self.particles)
-        j = int(np.argmin(own_bad))
-        return second_opinion(
-            score,
-            self.last_estimate,
-            float(own_bad[j]),
-            float(own_inl[j]) if own_inl is not None else math.nan,
-            cand,
-            min_distance_m=self.settings.convergence.separation_m,
-            inlier_gain=r.opinion_inlier_gain,
-            badness_ratio=r.opinion_badness_ratio,
-        )
-
-
-# ---------------------------------------------------------------------------------------------- drivable area
-
-
-@dataclass
-class DrivableArea:
-    """Where global localization spreads particles: lower-left corners ``(K, 2)`` of square cells of
-    ``cell_m``, and the mapping drive's heading near each cell (None without a drive)."""
-
-    corners: np.ndarray
-    cell_m: float
-    headings: np.ndarray | None
-
-
-def drivable_cells(mesh_map: MeshMap, settings: InitSettings) -> DrivableArea:
-    """The map's measured ground cells, and of those only the ones within ``drive_radius_m`` of the
-    mapping drive when the map keeps its drive (``drive_xy``), with the drive's heading there."""
-    g = mesh_map.ground
-    j, i = np.nonzero(g.measured)
-    if len(i) == 0:
-        raise InputError("map: no ground cell was measured, so there is no area to spread particles over")
-    corners = g.origin_xy + np.column_stack([i, j]) * g.cell_m
-    drive = mesh_map.drive_xy
-    if drive is None or len(drive) < 2 or settings.drive_radius_m <= 0:
-        return DrivableArea(corners, float(g.cell_m), None)
-    from scipy.spatial import cKDTree
-
-    dist, nearest = cKDTree(drive).query(corners + 0.5 * g.cell_m)
-    near = dist <= settings.drive_radius_m
-    if not near.any():
-        return DrivableArea(corners, float(g.cell_m), None)
-    step = np.diff(drive, axis=0)
-    seg_heading = np.arctan2(step[:, 1], step[:, 0])
-    heading = seg_heading[np.minimum(nearest[near], len(seg_heading) - 1)]
-    return DrivableArea(corners[near], float(g.cell_m), heading)
+    return MonteCarloLocalizer(
+        mesh_map,
+        scorer,
+        caster=caster,
+        residual_model=residual_model,
+        select_rays=partial(
+            select_rays,
+            rays=o.rays,
+            sampling=o.ray_sampling,
+            ground_share=o.ground_share,
+            min_range_m=o.min_range_m,
+            max_range_m=o.max_range_m,
+            deskew=o.deskew,
+            level_with_imu=o.level_with_imu,
+        ),
+        area=drivable_cells(mesh_map, i.drive_radius_m),
+        noise=MotionNoise(m.rot_per_rot, m.rot_per_trans, m.trans_per_trans, m.trans_per_rot),
+        lost=lost,
+        rng=rng if rng is not None else np.random.default_rng(seed),
+        sensor_height_m=float(height),
+        update_distance_m=m.update_distance_m,
+        update_angle_deg=m.update_angle_deg,
+        level_with_imu=o.level_with_imu,
+        global_count=p.global_count,
+        converged_count=p.converged_count,
+        tracking_count=p.tracking_count,
+        tracking_sigma_xy_m=p.tracking_sigma_xy_m,
+        tracking_sigma_yaw_deg=p.tracking_sigma_yaw_deg,
+        resample_neff_ratio=p.resample_neff_ratio,
+        jitter_xy_m=p.jitter_xy_m,
+        jitter_yaw_deg=p.jitter_yaw_deg,
+        global_jitter_xy_m=p.global_jitter_xy_m,
+        global_jitter_yaw_deg=p.global_jitter_yaw_deg,
+        estimate_best_share=p.estimate_best_share,
+        uniform_yaw_share=i.uniform_yaw_share,
+        heading_sigma_deg=i.heading_sigma_deg,
+        place_prior=i.place_prior,
+        prior_params=PriorParams(cell_m=i.prior_cell_m),
+        prior_share=i.prior_share,
+        prior_top=i.prior_top,
+        prior_yaw_sigma_deg=i.prior_yaw_sigma_deg,
+        inject_share=i.inject_share,
+        inject_top=i.inject_top,
+        inject_below_share=i.inject_below_share,
+        convergence=c.method,
+        tiles=c.tiles,
+        max_radius_m=c.max_radius_m,
+        compact_radius_m=c.compact_radius_m,
+        cluster_m=c.cluster_m,
+        margin_nats=c.margin_nats,
+        separation_m=c.separation_m,
+        min_inliers=c.min_inliers,
+        min_distance_m=c.min_distance_m,
+        min_cluster_particles=c.min_cluster_particles,
+        prune_nats=c.prune_nats,
+        max_clusters=c.max_clusters,
+        kld_epsilon=c.kld_epsilon,
+        kld_bin_xy_m=c.kld_bin_xy_m,
+        kld_bin_yaw_deg=c.kld_bin_yaw_deg,
+        min_search_particles=c.min_search_particles,
+    )

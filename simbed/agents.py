@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from rangemcl.mapping.meshmap import MeshMap
-from rangemcl.mcl import LocalizerSettings, MonteCarloLocalizer
+from rangemcl.mcl import LocalizerSettings, build_localizer
 from rangemcl.rangeimage import RangeImageGeometry
 
 
@@ -51,7 +51,7 @@ class MCLAgent:
     ):
         self.map = mesh_map if isinstance(mesh_map, MeshMap) else MeshMap.load(mesh_map)
         self.geometry = geometry
-        self.filter = MonteCarloLocalizer(
+        self.filter = build_localizer(
             self.map, settings, seed=seed, device=device, threads=threads, sensor_height_m=sensor_height_m
         )
         self.last_info = None

@@ -76,7 +76,7 @@ def main() -> None:
     from rangemcl.evaluate import xyyaw_of
     from rangemcl.localize import _frame_period
     from rangemcl.mapping.meshmap import MeshMap
-    from rangemcl.mcl import LocalizerSettings, MonteCarloLocalizer, prepare_rays, se2_between
+    from rangemcl.mcl import LocalizerSettings, build_localizer, prepare_rays, se2_between
 
     seq = load_sequence(args.seq)
     mesh_map = MeshMap.load(args.map)
@@ -92,7 +92,7 @@ def main() -> None:
         o3d.core.Tensor(mesh_map.faces.astype(np.uint32)),
     )
     rng = np.random.default_rng(args.seed)
-    loc = MonteCarloLocalizer(mesh_map, settings, rng=rng, device=args.device, sensor_height_m=1.73)
+    loc = build_localizer(mesh_map, settings, rng=rng, device=args.device, sensor_height_m=1.73)
     n_frames = min(args.frames, len(seq))
 
     # --- after convergence: whole steps with few particles ----------------------------------------------

@@ -37,7 +37,7 @@ def run() -> None:
     from rangemcl.localization.place_prior import circular_distance_deg, scan_profile
     from rangemcl.localize import _sensor_height
     from rangemcl.mapping.meshmap import MeshMap
-    from rangemcl.mcl import LocalizerSettings, MonteCarloLocalizer
+    from rangemcl.mcl import LocalizerSettings, build_localizer
     from rangemcl.se2 import rotation_roll_pitch
 
     seq = load_sequence(args.seq)
@@ -46,7 +46,7 @@ def run() -> None:
         raise InputError(f"{args.seq}: the drive has no poses.txt")
     settings = LocalizerSettings()
     height, _ = _sensor_height(seq, mesh_map, settings)
-    loc = MonteCarloLocalizer(mesh_map, settings, seed=0, sensor_height_m=height)
+    loc = build_localizer(mesh_map, settings, seed=0, sensor_height_m=height)
     t0 = time.perf_counter()
     prior = loc.place_prior()
     ready_s = time.perf_counter() - t0

@@ -44,7 +44,7 @@ def main() -> None:
     from rangemcl.evaluate import xyyaw_of
     from rangemcl.localize import _frame_period, _sensor_height, odometry_xyyaw
     from rangemcl.mapping.meshmap import MeshMap
-    from rangemcl.mcl import LocalizerSettings, MonteCarloLocalizer, prepare_rays, se2_between
+    from rangemcl.mcl import LocalizerSettings, build_localizer, prepare_rays, se2_between
 
     seq = load_sequence(a.seq, require_poses=True)
     settings = load_config(LocalizerSettings, a.config)
@@ -52,7 +52,7 @@ def main() -> None:
     o = settings.observation
     mesh_map = MeshMap.load(a.map)
     height, _ = _sensor_height(seq, mesh_map, settings)
-    loc = MonteCarloLocalizer(mesh_map, settings, seed=a.seed, threads=a.threads, sensor_height_m=height)
+    loc = build_localizer(mesh_map, settings, seed=a.seed, threads=a.threads, sensor_height_m=height)
     truths = xyyaw_of(seq.poses)
     odo, _ = odometry_xyyaw(seq, False)
     period = _frame_period(seq)

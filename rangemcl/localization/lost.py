@@ -167,3 +167,70 @@ def second_opinion(
     j = int(np.argmin(bad))
     better = bool(bad[j] < badness_ratio * current_badness)
     return Opinion(better, cand[j], float(bad[j]), math.nan, len(cand))
+
+
+class LostDetector:
+    """The converged filter's lost decision (module docstring): the :class:`SignalWatch`, the second
+    opinion's settings, and the probation after each convergence.
+
+    :meth:`update` takes the update's best badness and inlier share and a callable that gives the second
+    opinion (:class:`Opinion`, or None when the scan cannot be compared), called only when needed; it
+    returns ``(lost, vetoed)``. With ``second_opinion`` off (or no opinion callable: a filter without the
+    place prior) the watch alone decides."""
+
+    def __init__(
+        self,
+        watch: SignalWatch,
+        *,
+        second_opinion: bool = True,
+        opinion_top: int = 30,
+        opinion_per_place: int = 16,
+        opinion_inlier_gain: float = 0.15,
+        opinion_badness_ratio: float = 0.7,
+        opinion_min_range_m: float = 5.0,
+        max_vetoed_updates: int = 30,
+        probation_updates: int = 10,
+        probation_hits: int = 2,
+    ):
+        self.watch = watch
+        self.second_opinion = bool(second_opinion)
+        self.opinion_top = int(opinion_top)
+        self.opinion_per_place = int(opinion_per_place)
+        self.opinion_inlier_gain = float(opinion_inlier_gain)
+        self.opinion_badness_ratio = float(opinion_badness_ratio)
+        self.opinion_min_range_m = float(opinion_min_range_m)
+        self.max_vetoed_updates = int(max_vetoed_updates)
+        self.probation_updates = int(probation_updates)
+        self.probation_hits = int(probation_hits)
+        self.vetoed_alarms = 0  # suspicions the second opinion vetoed (episodes)
+        self._probation = 0  # updates left in which each update gets a second opinion
+        self._hits = 0
+
+    def reset(self) -> None:
+        """A new particle set: no history, no probation."""
+        self.watch.reset()
+        self._probation = 0
+        self._hits = 0
+
+    def start_probation(self) -> None:
+        self._probation = self.probation_updates
+        self._hits = 0
+
+    def update(self, best: float, inliers: float, opinion) -> tuple[bool, bool]:
+        suspicious = self.watch.update(best, inliers)
+        probation = self._probation > 0
+        self._probation = max(0, self._probation - 1)
+        if not (suspicious or probation):
+            self._hits = 0
+            return False, False
+        if not self.second_opinion or opinion is None:
+            return suspicious, False
+        found = opinion()
+        if not suspicious:
+            self._hits = self._hits + 1 if found is not None and found.better else 0
+            return self._hits >= self.probation_hits, False
+        if found is None or found.better or self.watch.bad_updates >= self.max_vetoed_updates:
+            return True, False
+        if self.watch.bad_updates == self.watch.updates:
+            self.vetoed_alarms += 1
+        return False, True

@@ -20,6 +20,7 @@ from rangemcl.mcl import (
     LocalizerSettings,
     MonteCarloLocalizer,
     ObservationSettings,
+    build_localizer,
     drivable_cells,
     prepare_rays,
     rotation_roll_pitch,
@@ -96,7 +97,7 @@ def errors(est, truth):
 
 def test_global_localization_converges_on_a_tiny_town(world):
     town, caster, m, path, geo = world
-    loc = MonteCarloLocalizer(m, small_settings(), seed=1, caster=caster)
+    loc = build_localizer(m, small_settings(), seed=1, caster=caster)
     loc.spread()
     assert len(loc.particles) == 3000
     est, infos = run(loc, town, caster, geo, path, [0.01, 0.005, 0.002], np.random.default_rng(2))
@@ -121,7 +122,7 @@ def test_tracking_follows_and_recovers_after_a_teleport(world):
         return path[k] if k < jump else other[k - jump] + offset
 
     s = small_settings()
-    loc = MonteCarloLocalizer(m, s, seed=3, caster=caster)
+    loc = build_localizer(m, s, seed=3, caster=caster)
     loc.start_at(path[0])
     assert loc.converged and len(loc.particles) == s.particles.tracking_count
     rng = np.random.default_rng(4)
@@ -149,11 +150,10 @@ def test_tracking_follows_and_recovers_after_a_teleport(world):
 
 def test_true_pose_scores_above_perturbed_poses_through_the_filter(world):
     town, caster, m, path, geo = world
-    loc = MonteCarloLocalizer(m, small_settings(), seed=0, caster=caster)
+    s = small_settings()
+    loc = build_localizer(m, s, seed=0, caster=caster)
     k = 30
-    rays = prepare_rays(
-        scan_at(town, caster, geo, path[k]), loc.settings.observation, np.random.default_rng(0)
-    )
+    rays = prepare_rays(scan_at(town, caster, geo, path[k]), s.observation, np.random.default_rng(0))
     offsets = np.array([[0, 0, 0], [0.5, 0, 0], [0, 0.5, 0], [0, 0, 0.05], [2, 1, 0], [0, 0, 0.3]])
     d = loc.residuals(rays, path[k] + offsets)
     assert d[0] < 0.05 and (d[1:] > d[0] + 0.05).all()
@@ -235,7 +235,7 @@ def test_ray_sampling_by_elevation_gives_each_band_its_share():
 
 def test_scan_without_valid_points_only_predicts(world):
     _, caster, m, path, _ = world
-    loc = MonteCarloLocalizer(m, small_settings(), seed=0, caster=caster)
+    loc = build_localizer(m, small_settings(), seed=0, caster=caster)
     loc.start_at(path[0])
     info = loc.step(np.array([1.0, 0.0, 0.0]), np.full((100, 3), np.nan, np.float32))
     assert info.updated is False and info.skipped_scan is True
@@ -259,12 +259,12 @@ def test_settings_are_checked(world):
         s = LocalizerSettings()
         setattr(s.observation, key, value)
         with pytest.raises(InputError, match=f"observation.{key}"):
-            MonteCarloLocalizer(m, s, caster=caster)
+            build_localizer(m, s, caster=caster)
     s = LocalizerSettings()
     s.particles.resample_neff_ratio = 1.5
     with pytest.raises(InputError, match="resample_neff_ratio"):
         s.check()
-    loc = MonteCarloLocalizer(m, LocalizerSettings(), caster=caster)
+    loc = build_localizer(m, LocalizerSettings(), caster=caster)
     with pytest.raises(InputError, match="no particles"):
         loc.step(np.zeros(3), None)
     with pytest.raises(InputError, match="outside the map"):
@@ -274,9 +274,9 @@ def test_settings_are_checked(world):
 def test_spread_covers_the_drive_with_yaw_along_it(world):
     _, caster, m, _, _ = world
     s = LocalizerSettings()
-    area = drivable_cells(m, s.init)
+    area = drivable_cells(m, s.init.drive_radius_m)
     assert area.headings is not None and len(area.corners) > 100
-    loc = MonteCarloLocalizer(m, s, seed=0, caster=caster)
+    loc = build_localizer(m, s, seed=0, caster=caster)
     loc.spread(5000)
     p = loc.particles
     from scipy.spatial import cKDTree
@@ -287,8 +287,8 @@ def test_spread_covers_the_drive_with_yaw_along_it(world):
     along = np.minimum(np.abs(np.sin(p[:, 2])), np.abs(np.cos(p[:, 2])))
     assert np.mean(along < np.sin(np.radians(45))) > 0.8
     m2 = MeshMap.from_mesh(m.vertices, m.faces, m.is_ground, tile_size_m=50.0)  # no drive: all ground cells
-    assert drivable_cells(m2, s.init).headings is None
-    assert len(drivable_cells(m2, s.init).corners) > len(area.corners)
+    assert drivable_cells(m2, s.init.drive_radius_m).headings is None
+    assert len(drivable_cells(m2, s.init.drive_radius_m).corners) > len(area.corners)
 
 
 def test_metrics_follow_the_papers_definition():

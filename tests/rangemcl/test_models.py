@@ -12,7 +12,7 @@ import pytest
 from rangemcl import meshgen
 from rangemcl.errors import InputError
 from rangemcl.mapping.meshmap import MeshMap
-from rangemcl.mcl import LocalizerSettings, MonteCarloLocalizer, ObservationSettings, prepare_rays
+from rangemcl.mcl import LocalizerSettings, ObservationSettings, build_localizer, prepare_rays
 from rangemcl.models import MODEL_NAMES, make_model, surface_voxels, wasserstein_1d
 from rangemcl.rangeimage import RangeImageGeometry
 from rangemcl.raycast import RayCaster
@@ -122,7 +122,7 @@ def test_baselines_track_inside_the_filter(scene, name, tolerance_m):
     path = [np.array([-30.0 + 0.5 * k, float(town.road_xy[1]) - 2.0, 0.0]) for k in range(25)]
     s = LocalizerSettings()
     s.observation = ObservationSettings(model=name, rays=200, max_range_m=60.0, field_voxel_m=0.2)
-    loc = MonteCarloLocalizer(m, s, seed=0, caster=caster)
+    loc = build_localizer(m, s, seed=0, caster=caster)
     loc.start_at(path[0] + [0.4, -0.3, 0.03], 100)
     for k, pose in enumerate(path):
         info = loc.step(np.array([0.5, 0.0, 0.0]) if k else np.zeros(3), scan_from(caster, town, pose))
@@ -135,4 +135,4 @@ def test_unknown_model_is_an_error(scene):
     s = LocalizerSettings()
     s.observation.model = "neural"
     with pytest.raises(InputError, match=r"observation\.model"):
-        MonteCarloLocalizer(m, s, caster=caster)
+        build_localizer(m, s, caster=caster)

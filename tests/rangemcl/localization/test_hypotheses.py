@@ -20,7 +20,7 @@ from rangemcl.localization.hypotheses import (
     summarize,
 )
 from rangemcl.mapping.meshmap import MeshMap
-from rangemcl.mcl import LocalizerSettings, MonteCarloLocalizer, ObservationSettings, se2_between
+from rangemcl.mcl import LocalizerSettings, ObservationSettings, build_localizer, se2_between
 from rangemcl.rangeimage import RangeImageGeometry
 from rangemcl.raycast import RayCaster
 from rangemcl.sensors import load_spec
@@ -141,7 +141,7 @@ def test_convergence_is_refused_between_identical_streets_and_granted_once_they_
     caster, m = twin_streets
     geo = RangeImageGeometry.for_spec(load_spec("vlp-16").with_columns(360))
     path = np.column_stack([np.arange(0.0, 120.0, 0.8), np.zeros(150), np.zeros(150)])  # along street A
-    loc = MonteCarloLocalizer(m, twin_settings(), seed=4, caster=caster)
+    loc = build_localizer(m, twin_settings(), seed=4, caster=caster)
     loc.spread()
     converged_at, on_b = None, 0
     for k in range(len(path)):
@@ -182,7 +182,7 @@ def test_a_removed_object_in_the_map_does_not_make_the_filter_lost(signal):
     s.recovery.signal = signal
     if signal == "residual":
         s.observation.cap_beyond_m = None  # the localizer as it was
-    loc = MonteCarloLocalizer(m, s, seed=5)
+    loc = build_localizer(m, s, seed=5)
     loc.start_at(path[0])
     rng = np.random.default_rng(6)
     est, alarms = [], []
@@ -248,7 +248,7 @@ def test_the_second_opinion_vetoes_alarms_where_no_other_place_fits_better(secon
     s.recovery.inlier_factor = 0.97  # touchy: any dip of the inlier share is a bad update ...
     s.recovery.updates = 2  # ... and two in a row a suspicion
     s.recovery.max_vetoed_updates = 1000  # (the lorries stay in view for most of the drive)
-    loc = MonteCarloLocalizer(m, s, seed=5)
+    loc = build_localizer(m, s, seed=5)
     loc.start_at(path[0])
     rng = np.random.default_rng(6)
     err, recovered, vetoed = [], [], 0

@@ -1,0 +1,574 @@
+"""The Monte Carlo localizer's core: particles over ``(x, y, yaw)`` in a mesh map, one :meth:`step` per
+LiDAR frame (:class:`MonteCarloLocalizer`).
+
+1. **Predict**: the frame's odometry increment is accumulated; particles move (odometry motion model,
+   noise growing with the motion) and are weighted only once the car has moved ``update_distance_m`` or
+   turned ``update_angle_deg`` since the last update; between updates the estimate follows the odometry.
+2. **Weigh**: a subset of the scan's points (``select_rays``: :mod:`rangemcl.localization.scan_prep`) is
+   cast from every particle through the map and scored by the observation model (:mod:`rangemcl.models`;
+   the paper's Eq. 5 by default).
+3. **Search** (global localization): particles start uniform over the drivable area
+   (:mod:`rangemcl.localization.spread`), a share of them redrawn at the first update where the place
+   prior says the scan fits (:mod:`rangemcl.localization.place_prior`); the cloud is kept as hypotheses
+   and convergence is declared when one has won (:mod:`rangemcl.localization.hypotheses`), or, with
+   ``convergence="tiles"``, the paper's rule (all particles in ``tiles`` tiles); then ``converged_count``
+   particles are kept.
+4. **Lost**: a converged filter watches its evidence and asks the place prior for a second opinion
+   (:mod:`rangemcl.localization.lost`); when lost, it spreads again and relocalizes.
+
+The constructor takes plain values and the parts it composes (observation model, ray selection, drivable
+area, lost detector); :func:`rangemcl.mcl.build_localizer` makes them from the YAML settings. All
+randomness comes from the generator handed in.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from rangemcl.errors import InputError
+from rangemcl.localization.hypotheses import (
+    ConvergenceTest,
+    cluster_labels,
+    kld_sample_size,
+    occupied_bins,
+    resample_by_cluster,
+    summarize,
+)
+from rangemcl.localization.lost import LostDetector, Opinion, candidate_particles, second_opinion
+from rangemcl.localization.place_prior import PlacePrior, PriorParams, load_or_build
+from rangemcl.localization.scan_prep import ScanRays
+from rangemcl.localization.spread import DrivableArea, uniform_particles
+from rangemcl.particles import (
+    MotionNoise,
+    effective_sample_size,
+    low_variance_resample,
+    normalize_log_weights,
+    pose_estimate,
+    sample_motion,
+)
+from rangemcl.se2 import odometry_increment, rotation_roll_pitch, se2_compose, wrap_angle
+
+
+@dataclass
+class StepInfo:
+    """What one :meth:`MonteCarloLocalizer.step` did."""
+
+    estimate: np.ndarray  # (3,) x, y, yaw
+    particles: int
+    converged: bool
+    updated: bool  # particles were moved and weighted this frame
+    resampled: bool
+    skipped_scan: bool  # the scan had no valid point (prediction only)
+    best_residual_m: float  # best particle's mean residual at this update (NaN without an update)
+    neff: float
+    recovered: bool  # the filter declared itself lost and spread the particles again
+    seconds: float
+    hypotheses: int = 0  # clusters while searching (0 once converged or without an update)
+    evidence_nats: float = math.nan  # the leader's log weight share over the runner-up's (searching)
+    inliers: float = math.nan  # the best particle's inlier share (models that report it)
+    converged_now: bool = False  # convergence was declared at this update
+    vetoed: bool = False  # a lost suspicion at this update was vetoed by the second opinion
+
+
+class MonteCarloLocalizer:
+    """Particle filter over ``(x, y, yaw)`` in a map (module docstring).
+
+    Args:
+        mesh_map: the map (its ground grid gives each particle's height; its tiles the paper's rule).
+        scorer: the observation model (:func:`rangemcl.models.make_model`), bound to ``caster``.
+        caster: the :class:`~rangemcl.raycast.RayCaster` holding the map.
+        residual_model: the Eq. 5 kernel :meth:`residuals` reports (the range model's own, or one alike).
+        select_rays: ``(points, rng, *, fire_time_s, frame_period_s, frame_motion, roll_pitch,
+            sensor_height_m) -> ScanRays | None``: the scan's rays for one update.
+        area: where global localization spreads (:func:`rangemcl.localization.spread.drivable_cells`).
+        noise: the odometry motion model's noise.
+        lost: the lost detector; None: never lost (the paper's filter).
+        rng: the run's generator.
+        sensor_height_m: the sensor's height above the ground.
+        The keyword values: see :class:`rangemcl.mcl.LocalizerSettings`, which documents each.
+    """
+
+    def __init__(
+        self,
+        mesh_map,
+        scorer,
+        *,
+        caster,
+        residual_model,
+        select_rays: Callable[..., ScanRays | None],
+        area: DrivableArea,
+        noise: MotionNoise,
+        lost: LostDetector | None,
+        rng: np.random.Generator,
+        sensor_height_m: float = 1.73,
+        # motion and scan
+        update_distance_m: float = 0.2,
+        update_angle_deg: float = 5.0,
+        level_with_imu: bool = True,
+        # particles
+        global_count: int = 10000,
+        converged_count: int = 100,
+        tracking_count: int = 100,
+        tracking_sigma_xy_m: float = 0.5,
+        tracking_sigma_yaw_deg: float = 3.0,
+        resample_neff_ratio: float = 0.75,
+        jitter_xy_m: float = 0.05,
+        jitter_yaw_deg: float = 0.5,
+        global_jitter_xy_m: float = 0.2,
+        global_jitter_yaw_deg: float = 2.0,
+        estimate_best_share: float = 0.8,
+        # the spread and the place prior
+        uniform_yaw_share: float = 0.25,
+        heading_sigma_deg: float = 15.0,
+        place_prior: bool = True,
+        prior_params: PriorParams | None = None,
+        prior_share: float = 0.7,
+        prior_top: int = 300,
+        prior_yaw_sigma_deg: float = 2.0,
+        inject_share: float = 0.05,
+        inject_top: int = 30,
+        inject_below_share: float = 1.0,
+        # convergence
+        convergence: str = "hypotheses",
+        tiles: int = 1,
+        max_radius_m: float = 10.0,
+        compact_radius_m: float = 5.0,
+        cluster_m: float = 3.0,
+        margin_nats: float = 6.0,
+        separation_m: float = 5.0,
+        min_inliers: float = 0.6,
+        min_distance_m: float = 8.0,
+        min_cluster_particles: int = 20,
+        prune_nats: float = 15.0,
+        max_clusters: int = 150,
+        kld_epsilon: float = 0.05,
+        kld_bin_xy_m: float = 2.0,
+        kld_bin_yaw_deg: float = 15.0,
+        min_search_particles: int = 1000,
+    ):
+        if convergence not in ("hypotheses", "tiles"):
+            raise InputError(f"convergence {convergence!r}: expected 'hypotheses' or 'tiles'")
+        self.map = mesh_map
+        self.scorer = scorer
+        self.caster = caster
+        self.model = residual_model
+        self.select_rays = select_rays
+        self.init_cells = area
+        self.noise = noise
+        self.lost = lost
+        self.rng = rng
+        self.sensor_height_m = float(sensor_height_m)
+        self.update_distance_m = float(update_distance_m)
+        self.update_angle = math.radians(update_angle_deg)
+        self.level_with_imu = bool(level_with_imu)
+        self.global_count = int(global_count)
+        self.converged_count = int(converged_count)
+        self.tracking_count = int(tracking_count)
+        self.tracking_sigma = np.array(
+            [tracking_sigma_xy_m, tracking_sigma_xy_m, math.radians(tracking_sigma_yaw_deg)]
+        )
+        self.resample_neff_ratio = float(resample_neff_ratio)
+        self.jitter = (float(jitter_xy_m), float(jitter_yaw_deg))
+        self.global_jitter = (float(global_jitter_xy_m), float(global_jitter_yaw_deg))
+        self.estimate_best_share = float(estimate_best_share)
+        self.uniform_yaw_share = float(uniform_yaw_share)
+        self.heading_sigma = math.radians(heading_sigma_deg)
+        self.use_prior = bool(place_prior)
+        self.prior_params = prior_params or PriorParams()
+        self.prior_share = float(prior_share)
+        self.prior_top = int(prior_top)
+        self.prior_yaw_sigma = math.radians(prior_yaw_sigma_deg)
+        self.inject_share = float(inject_share)
+        self.inject_top = int(inject_top)
+        self.inject_below_share = float(inject_below_share)
+        self.convergence = convergence
+        self.tiles = int(tiles)
+        self.max_radius_m = float(max_radius_m)
+        self.compact_radius_m = float(compact_radius_m)
+        self.cluster_m = float(cluster_m)
+        self.min_inliers = float(min_inliers)
+        self.separation_m = float(separation_m)
+        self.min_cluster_particles = int(min_cluster_particles)
+        self.prune_nats = float(prune_nats)
+        self.max_clusters = int(max_clusters)
+        self.kld_epsilon = float(kld_epsilon)
+        self.kld_bin = (float(kld_bin_xy_m), float(kld_bin_yaw_deg))
+        self.min_search_particles = int(min_search_particles)
+        self.convergence_test = ConvergenceTest(margin_nats, min_distance_m, compact_radius_m, separation_m)
+
+        self.prior: PlacePrior | None = None
+        self.prior_source = ""
+        self.particles = np.zeros((0, 3))
+        self.log_w = np.zeros(0)
+        self.converged = False
+        self.converged_updates = 0
+        self.pending = np.zeros(3)  # odometry since the last update, in the pose at that update
+        self.last_estimate = np.zeros(3)
+        self.recoveries = 0
+        self._spread_count = self.global_count
+        self._prior_pending = False  # a global spread waits for a scan to draw from the prior
+        self._leader: np.ndarray | None = None  # per particle: descends from the last leading cluster
+        self._moved_m = 0.0
+        self.hypotheses: list = []  # the search's clusters at the last update, largest share first
+
+    @property
+    def vetoed_alarms(self) -> int:
+        """Lost suspicions that the second opinion vetoed (episodes)."""
+        return self.lost.vetoed_alarms if self.lost is not None else 0
+
+    # --- initialisation ---------------------------------------------------------------------------------
+
+    def place_prior(self) -> PlacePrior:
+        """The map's place prior (loaded from the map folder, else rendered once and stored there)."""
+        if self.prior is None:
+            area = self.init_cells
+            self.prior, self.prior_source = load_or_build(
+                self.map, self.caster, area.corners, area.cell_m, self.prior_params
+            )
+        return self.prior
+
+    def spread(self, n: int | None = None) -> None:
+        """Global localization: ``n`` particles uniform over the drivable area; yaw along the mapping
+        drive (either way) where the map keeps it, with a share of uniform yaw, else uniform. With the
+        place prior on, a share of them is redrawn at the first update from the places that match that
+        scan (:mod:`rangemcl.localization.place_prior`)."""
+        n = int(n or self.global_count)
+        self._spread_count = n
+        self._set_particles(
+            uniform_particles(
+                self.init_cells,
+                n,
+                self.rng,
+                uniform_yaw_share=self.uniform_yaw_share,
+                heading_sigma_rad=self.heading_sigma,
+            )
+        )
+        self.converged = False
+        self._prior_pending = self.use_prior
+        if self._prior_pending:
+            self.place_prior()
+        self.convergence_test.reset()
+
+    def _from_prior(self, n: int, levelled_points: np.ndarray, top: int | None = None) -> np.ndarray | None:
+        """``n`` particles around the prior's ``top`` best places for this scan (default ``prior_top``,
+        at most 2 % of the map's cells); None when the scan has too few points in the prior's height band
+        to compare."""
+        prior = self.place_prior()
+        top = min(top or self.prior_top, max(20, len(prior.xy) // 50))
+        xy, yaw, _cost, known = prior.candidates(levelled_points, self.sensor_height_m, top)
+        if known < max(8, prior.params.bins // 20) or n <= 0:
+            return None
+        k = self.rng.integers(0, len(xy), n)
+        half = 0.5 * prior.params.cell_m
+        out = np.empty((n, 3))
+        out[:, :2] = xy[k] + self.rng.uniform(-half, half, (n, 2))
+        out[:, 2] = wrap_angle(yaw[k] + self.rng.normal(0.0, self.prior_yaw_sigma, n))
+        return out
+
+    def start_at(self, pose_xyyaw, n: int | None = None) -> None:
+        """Pose tracking: ``n`` particles around a known start pose."""
+        n = int(n or self.tracking_count)
+        x0 = np.asarray(pose_xyyaw, np.float64).reshape(3)
+        if not np.isfinite(x0).all():
+            raise InputError(f"initial pose must be finite, got {x0}")
+        if self.map.tile_at(x0[0], x0[1]) < 0:
+            raise InputError(
+                f"initial pose ({x0[0]:.1f}, {x0[1]:.1f}) lies outside the map's tiles "
+                f"(extent x {self.map.extent[0]:.0f}..{self.map.extent[3]:.0f}, "
+                f"y {self.map.extent[1]:.0f}..{self.map.extent[4]:.0f}): is the map in the sequence's frame?"
+            )
+        parts = x0 + self.rng.normal(0.0, 1.0, (n, 3)) * self.tracking_sigma
+        parts[:, 2] = wrap_angle(parts[:, 2])
+        self._set_particles(parts)
+        self.converged = True
+        self._prior_pending = False
+        self.last_estimate = x0.copy()
+
+    def _set_particles(self, particles: np.ndarray) -> None:
+        self.particles = np.asarray(particles, np.float64)
+        self.log_w = np.zeros(len(self.particles))
+        self.pending = np.zeros(3)
+        if self.lost is not None:
+            self.lost.reset()
+        self._leader = None
+        self.last_estimate = pose_estimate(self.particles, self.weights, self.estimate_best_share)
+
+    @property
+    def weights(self) -> np.ndarray:
+        return normalize_log_weights(self.log_w) if len(self.log_w) else self.log_w
+
+    def estimate(self) -> np.ndarray:
+        """Current pose estimate ``(x, y, yaw)``: the last update's estimate moved by the odometry since."""
+        return se2_compose(self.last_estimate, self.pending)
+
+    # --- one frame ---------------------------------------------------------------------------------------
+
+    def step(
+        self,
+        odometry_delta,
+        points: np.ndarray | None,
+        *,
+        fire_time_s: np.ndarray | None = None,
+        frame_period_s: float | None = None,
+        roll_pitch: tuple[float, float] | None = None,
+    ) -> StepInfo:
+        """One LiDAR frame: ``odometry_delta`` ``(dx, dy, dyaw)`` is the car's motion since the previous
+        frame in the previous frame's pose; ``points`` the scan ``(M, 3)`` in the sensor frame (None or
+        empty: predict only)."""
+        if len(self.particles) == 0:
+            raise InputError("the filter has no particles: call spread() or start_at() first")
+        t0 = time.perf_counter()
+        delta = np.asarray(odometry_delta, np.float64).reshape(3)
+        if not np.isfinite(delta).all():
+            raise InputError(f"odometry increment must be finite, got {delta}")
+        self.pending = se2_compose(self.pending, delta)
+        due = (
+            math.hypot(self.pending[0], self.pending[1]) >= self.update_distance_m
+            or abs(self.pending[2]) >= self.update_angle
+        )
+        info = dict(
+            updated=False, resampled=False, skipped_scan=False, best_residual_m=math.nan, recovered=False
+        )
+        if due:
+            rays = None
+            if points is not None and len(points):
+                rays = self.select_rays(
+                    points,
+                    self.rng,
+                    fire_time_s=fire_time_s,
+                    frame_period_s=frame_period_s,
+                    frame_motion=delta,
+                    roll_pitch=roll_pitch,
+                    sensor_height_m=self.sensor_height_m,
+                )
+            self._move()
+            if rays is None:
+                info["skipped_scan"] = True
+            else:
+
+                def level() -> np.ndarray:
+                    out = np.asarray(points, np.float64).reshape(-1, 3)
+                    if roll_pitch is not None and self.level_with_imu:
+                        out = out @ rotation_roll_pitch(*roll_pitch).T
+                    return out
+
+                levelled = level() if self._needs_prior() else None
+                if self._prior_pending and levelled is not None:
+                    self._draw_initial_prior(levelled)
+                info.update(self._weigh(rays, levelled, level))
+        w = self.weights
+        return StepInfo(
+            estimate=self.estimate(),
+            particles=len(self.particles),
+            converged=self.converged,
+            neff=effective_sample_size(w),
+            seconds=time.perf_counter() - t0,
+            **info,
+        )
+
+    def _needs_prior(self) -> bool:
+        return self.use_prior and not self.converged
+
+    def _draw_initial_prior(self, levelled: np.ndarray) -> None:
+        n = len(self.particles)
+        k = int(round(self.prior_share * n))
+        drawn = self._from_prior(k, levelled)
+        if drawn is None:
+            return  # too little in the scan to compare: stay uniform, try again at the next update
+        self.particles[self.rng.choice(n, k, replace=False)] = drawn
+        self.log_w = np.zeros(n)
+        self._prior_pending = False
+
+    def _move(self) -> None:
+        increment = odometry_increment(np.zeros(3), self.pending)
+        self._moved_m = float(math.hypot(self.pending[0], self.pending[1]))
+        self.particles = sample_motion(self.particles, increment, self.noise, self.rng)
+        self.last_estimate = se2_compose(self.last_estimate, self.pending)
+        self.pending = np.zeros(3)
+
+    def sensor_z(self, xy: np.ndarray) -> np.ndarray:
+        """The sensor's world z over each ``(x, y)``: the map's ground there plus the mounting height."""
+        return self.map.ground.height_at(xy[:, 0], xy[:, 1]) + self.sensor_height_m
+
+    def residuals(self, rays: ScanRays, particles: np.ndarray | None = None) -> np.ndarray:
+        """Mean residual ``d`` of Eq. 5 of each particle (default: the filter's) for these rays."""
+        p = self.particles if particles is None else np.asarray(particles, np.float64)
+        self.model.set_scan(rays.directions, rays.ranges)
+        return self.model.mean_residuals(p, self.sensor_z(p[:, :2])).astype(np.float64)
+
+    def _weigh(self, rays: ScanRays, levelled: np.ndarray | None = None, level=None) -> dict:
+        loglik, bad = self.scorer.score(rays, self.particles, self.sensor_z(self.particles[:, :2]))
+        self.log_w = self.log_w + loglik
+        best = float(bad.min())
+        inl = self.scorer.last_inliers
+        inliers = float(inl[np.argmax(loglik)]) if inl is not None and len(inl) else math.nan
+        out = dict(
+            updated=True,
+            resampled=False,
+            best_residual_m=best,
+            skipped_scan=False,
+            recovered=False,
+            inliers=inliers,
+        )
+        w = self.weights
+        self.last_estimate = pose_estimate(self.particles, w, self.estimate_best_share)
+        if self.converged and self.lost is not None:
+            opinion = (
+                (lambda: self._second_opinion(rays, level()))
+                if self.use_prior and level is not None
+                else None
+            )
+            lost, out["vetoed"] = self.lost.update(best, inliers, opinion)
+            if lost:
+                self.recoveries += 1
+                self.spread(max(self._spread_count, self.global_count))
+                out["recovered"] = True
+                return out
+        n = len(self.particles)
+        if not self.converged:
+            if self.convergence == "hypotheses":
+                out.update(self._search_update(w, levelled))
+            elif self._tiles_converged():
+                self._resample(w, min(self.converged_count, n))
+                self.converged = True
+                self._start_probation()
+                out.update(resampled=True, converged_now=True)
+            elif effective_sample_size(w) < self.resample_neff_ratio * n:
+                self._resample(w, n)
+                out["resampled"] = True
+        elif effective_sample_size(w) < self.resample_neff_ratio * n:
+            self._resample(w, n)
+            out["resampled"] = True
+        if self.converged:
+            self.converged_updates += 1
+        return out
+
+    def _start_probation(self) -> None:
+        if self.lost is not None:
+            self.lost.start_probation()
+
+    def _search_update(self, w: np.ndarray, levelled: np.ndarray | None) -> dict:
+        """One update of the hypothesis search (:mod:`rangemcl.localization.hypotheses`): cluster,
+        test for a winner, else resample cluster by cluster to the KLD size and inject prior particles."""
+        labels, count = cluster_labels(self.particles[:, :2], self.cluster_m)
+        hyps = summarize(self.particles, w, labels, count)
+        self.hypotheses = hyps
+        best = hyps[0]
+        same = False
+        if self._leader is not None and len(self._leader) == len(labels):
+            same = bool(self._leader[labels == best.label].mean() >= 0.5)
+        won = self.convergence_test.update(hyps, same, self._moved_m)
+        inl = self.scorer.last_inliers
+        if won and inl is not None and len(inl) == len(labels):
+            # the winner must also fit: a place that merely fits less badly than the rest has not won
+            won = float(inl[labels == best.label].max()) >= self.min_inliers
+        margin = self.convergence_test.margin
+        out = dict(resampled=True, hypotheses=len(hyps), evidence_nats=margin)
+        self.last_estimate = best.centroid.copy()  # while searching, the leading hypothesis
+        if won:
+            inside = np.flatnonzero(labels == best.label)
+            wi = w[inside] / w[inside].sum()
+            self.particles = self.particles[inside]
+            self._resample(wi, self.converged_count)
+            self.converged = True
+            self._leader = None
+            self.last_estimate = pose_estimate(self.particles, self.weights, self.estimate_best_share)
+            self._start_probation()
+            out["converged_now"] = True
+            return out
+        keep = [h for h in hyps if h.log_share >= best.log_share - self.prune_nats][: self.max_clusters]
+        provisional = self.particles[low_variance_resample(w, self.rng, len(w))]
+        size = kld_sample_size(occupied_bins(provisional, *self.kld_bin), self.kld_epsilon)
+        size = int(
+            np.clip(size, self.min_search_particles, max(self._spread_count, self.min_search_particles))
+        )
+        parts, logw, origin = resample_by_cluster(
+            self.particles, w, labels, keep, size, self.min_cluster_particles, self.rng
+        )
+        n = len(parts)
+        sxy, syaw = self.global_jitter[0], math.radians(self.global_jitter[1])
+        parts[:, :2] += self.rng.normal(0.0, sxy, (n, 2))
+        parts[:, 2] = wrap_angle(parts[:, 2] + self.rng.normal(0.0, syaw, n))
+        leader = origin == 0
+        if (
+            self.use_prior
+            and levelled is not None
+            and best.share <= self.inject_below_share
+            and self.inject_share > 0
+        ):
+            k = max(1, int(round(self.inject_share * n)))
+            fresh = self._from_prior(k, levelled, self.inject_top)
+            if fresh is not None:
+                parts = np.vstack([parts, fresh])
+                logw = np.concatenate(
+                    [logw + math.log(1.0 - self.inject_share), np.full(k, math.log(self.inject_share / k))]
+                )
+                leader = np.concatenate([leader, np.zeros(k, bool)])
+        self.particles, self.log_w, self._leader = parts, logw, leader
+        return out
+
+    def _resample(self, w: np.ndarray, n: int) -> None:
+        idx = low_variance_resample(w, self.rng, n)
+        parts = self.particles[idx].copy()
+        sxy, syaw = self.jitter if self.converged else self.global_jitter
+        if sxy > 0 or syaw > 0:
+            parts[:, :2] += self.rng.normal(0.0, sxy, (n, 2))
+            parts[:, 2] = wrap_angle(parts[:, 2] + self.rng.normal(0.0, math.radians(syaw), n))
+        self.particles = parts
+        self.log_w = np.zeros(n)
+
+    def _tiles_converged(self) -> bool:
+        """The paper's rule: all particles in ``tiles`` tiles (and 95 % within ``max_radius_m``), or a
+        cloud this compact (``compact_radius_m``) across a tile border."""
+        est = self.last_estimate
+        dist = np.hypot(self.particles[:, 0] - est[0], self.particles[:, 1] - est[1])
+        r95 = float(np.quantile(dist, 0.95))
+        if r95 <= self.compact_radius_m:
+            return True
+        tiles = np.unique(self.map.tile_at(self.particles[:, 0], self.particles[:, 1]))
+        return len(tiles) <= self.tiles and r95 <= self.max_radius_m
+
+    def _second_opinion(self, rays: ScanRays, levelled: np.ndarray) -> Opinion | None:
+        """:func:`rangemcl.localization.lost.second_opinion` on the prior's best places for this scan,
+        with the rays measured at least ``opinion_min_range_m`` away (near objects, vehicles alongside
+        above all, fit any wall); the filter's own cloud is scored on the same rays. ``None`` when the
+        scan has too little in the prior's height band, or too few far rays, to compare."""
+        lost = self.lost
+        far = rays.ranges >= lost.opinion_min_range_m
+        if far.sum() < max(20, 0.1 * len(far)):
+            return None
+        sub = ScanRays(
+            rays.directions[far],
+            rays.ranges[far],
+            rays.valid_points,
+            None if rays.structure is None else rays.structure[far],
+        )
+        prior = self.place_prior()
+        xy, yaw, _cost, known = prior.candidates(levelled, self.sensor_height_m, lost.opinion_top)
+        if known < max(8, prior.params.bins // 20):
+            return None
+        cand = candidate_particles(
+            xy, yaw, lost.opinion_per_place, prior.params.cell_m, self.prior_yaw_sigma, self.rng
+        )
+
+        def score(p: np.ndarray):
+            _loglik, bad = self.scorer.score(sub, p, self.sensor_z(p[:, :2]))
+            return bad, self.scorer.last_inliers
+
+        own_bad, own_inl = score(self.particles)
+        j = int(np.argmin(own_bad))
+        return second_opinion(
+            score,
+            self.last_estimate,
+            float(own_bad[j]),
+            float(own_inl[j]) if own_inl is not None else math.nan,
+            cand,
+            min_distance_m=self.separation_m,
+            inlier_gain=lost.opinion_inlier_gain,
+            badness_ratio=lost.opinion_badness_ratio,
+        )
