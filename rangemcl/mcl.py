@@ -19,10 +19,10 @@ from rangemcl.errors import InputError
 from rangemcl.localization.filter import MonteCarloLocalizer, StepInfo
 from rangemcl.localization.lost import LostDetector, SignalWatch
 from rangemcl.localization.place_prior import PriorParams
+from rangemcl.localization.renderer import ParticleRenderer
 from rangemcl.localization.scan_prep import RAY_SAMPLINGS, ScanRays, select_rays
 from rangemcl.localization.spread import DrivableArea, drivable_cells
 from rangemcl.mapping.meshmap import MeshMap
-from rangemcl.observation import ObservationModel
 from rangemcl.particles import MotionNoise
 from rangemcl.raycast import RayCaster
 from rangemcl.se2 import rotation_roll_pitch, se2_between, se2_compose, wrap_angle
@@ -71,7 +71,9 @@ class MotionSettings:
 
 @dataclass
 class ObservationSettings:
-    model: str = "range"  # range (paper Eq. 5) | overlap | likelihood_field | histogram (rangemcl.models)
+    model: str = (
+        "range"  # range (paper Eq. 5) | overlap | likelihood_field | histogram (rangemcl.localization.models)
+    )
     sigma_m: float = 0.25  # σ_d of Eq. 5 (paper 5.0, reference code 2.0; chosen by measurement, README)
     rays: int = 500  # measured points cast per particle (a random subset of the valid ones) ...
     ray_sampling: str = "structure"  # ... each valid point alike (points), each elevation band alike
@@ -277,7 +279,7 @@ class LocalizerSettings:
             raise InputError(
                 f"{where}: particles.estimate_best_share must be in (0, 1], got {p.estimate_best_share}"
             )
-        from rangemcl.models import MODEL_NAMES
+        from rangemcl.localization.models import MODEL_NAMES
 
         if o.model not in MODEL_NAMES:
             raise InputError(
@@ -356,7 +358,7 @@ def build_localizer(
     """
     from functools import partial
 
-    from rangemcl.models import RangeModel, make_model
+    from rangemcl.localization.models import RangeModel, make_model
 
     s = settings or LocalizerSettings()
     s.check()
@@ -372,9 +374,7 @@ def build_localizer(
     residual_model = (
         scorer.kernel
         if isinstance(scorer, RangeModel)
-        else ObservationModel(
-            caster, sigma_m=o.sigma_m, margin_m=o.margin_m, cap_m=np.inf if o.cap_m is None else o.cap_m
-        )
+        else ParticleRenderer(caster, margin_m=o.margin_m, cap_m=np.inf if o.cap_m is None else o.cap_m)
     )
     lost = None
     if r.enabled:

@@ -355,7 +355,7 @@ class RayCaster:
         mesh.points.assign(wp.array(v, dtype=wp.vec3, device=self.device))
         mesh.refit()
 
-    def _scene_arrays(self) -> tuple[wp.array, wp.array, wp.array]:
+    def scene_arrays(self) -> tuple[wp.array, wp.array, wp.array]:
         if not self._meshes:
             raise InputError("the ray-casting scene has no mesh: add one before casting")
         if self._ids is None:
@@ -398,7 +398,7 @@ class RayCaster:
         if n == 0:
             return RayHits(ranges, mesh_ids, face_ids, normal_out if normals else None)
         with self._lock:
-            ids, inv, moved = self._scene_arrays()
+            ids, inv, moved = self.scene_arrays()
         dev = self.device
         inputs = [
             ids,
@@ -418,7 +418,7 @@ class RayCaster:
                 wp.array(face_ids, dtype=wp.int32, device=dev, copy=False),
                 wp.array(normal_out, dtype=wp.vec3, device=dev, copy=False),
             ]
-            self._launch_cpu(cast_kernel, n, inputs, [int(normals)], outs)
+            self.launch(cast_kernel, n, inputs, outs, [int(normals)])
         else:
             outs = [
                 wp.empty(n, dtype=float, device=dev),
@@ -426,7 +426,7 @@ class RayCaster:
                 wp.empty(n, dtype=wp.int32, device=dev),
                 wp.zeros(len(normal_out), dtype=wp.vec3, device=dev),
             ]
-            wp.launch(cast_kernel, dim=n, inputs=[*inputs, 0, int(normals)], outputs=outs, device=dev)
+            self.launch(cast_kernel, n, inputs, outs, [int(normals)])
             ranges, mesh_ids, face_ids, normal_out = (a.numpy() for a in outs)
         return RayHits(ranges, mesh_ids, face_ids, normal_out if normals else None)
 
@@ -443,9 +443,18 @@ class RayCaster:
         ranges[~np.isfinite(ranges)] = 0.0
         return ranges.reshape(geometry.shape)
 
-    def _launch_cpu(self, kernel, n: int, inputs: list, tail_inputs: list, outputs: list) -> None:
-        """Launch ``kernel`` over ``n`` items in contiguous chunks on the thread pool (offset passed in)."""
-        n_chunks = 1 if self._pool is None or n < 4096 else min(4 * self.threads, n // 1024)
+    def launch(
+        self, kernel, n: int, inputs: list, outputs: list, tail_inputs=(), *, min_chunk: int = 1024
+    ) -> None:
+        """Launch ``kernel`` over ``n`` items on the caster's device; its inputs are ``inputs``, the first
+        item's index (an ``offset``), then ``tail_inputs``. On a GPU one launch; on the CPU contiguous
+        chunks of at least ``min_chunk`` items (when there are four chunks' worth), up to four per thread,
+        run on the thread pool: Warp's CPU launches are single-threaded."""
+        if self.device != "cpu":
+            wp.launch(kernel, dim=n, inputs=[*inputs, 0, *tail_inputs], outputs=outputs, device=self.device)
+            return
+        small = self._pool is None or n < 4 * min_chunk
+        n_chunks = 1 if small else min(4 * self.threads, n // min_chunk)
         bounds = np.linspace(0, n, n_chunks + 1).astype(int)
 
         def run(k: int) -> None:

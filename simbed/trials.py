@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from rangemcl.errors import InputError
-from rangemcl.models import MODEL_NAMES
+from rangemcl.localization.models import MODEL_NAMES
 from rangemcl.pool import process_pool
 
 SUITES = ("particles", "sensors", "models", "kidnap", "runtime")

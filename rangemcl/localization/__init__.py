@@ -1,3 +1,14 @@
-"""The localizer's stages, one module each (DESIGN.md, "Where each piece lives"): the place prior
-(map-rendered profiles matched at every yaw) and the hypotheses (clusters, evidence, convergence). They
-import numpy, scipy and rangemcl's numeric core only; the filter (``rangemcl.mcl``) composes them."""
+"""The localizer's stages, one module each (DESIGN.md, "Where each piece lives"):
+
+* ``scan_prep``: the scan's rays for one update (sampling, de-skew, levelling);
+* ``renderer``: every particle's view of the map for those rays, reduced to residuals (one Warp kernel);
+* ``models``: the observation models that turn them into likelihoods (paper Eq. 5 and three baselines);
+* ``spread``: the drivable area where global localization spreads its particles;
+* ``place_prior``: map-rendered profiles matched against the scan at every yaw;
+* ``hypotheses``: clusters, their evidence and the sequential convergence test;
+* ``lost``: the evidence watch and the second opinion of a converged filter;
+* ``filter``: the core (``MonteCarloLocalizer.step``) that composes them.
+
+They import numpy, scipy, Warp and rangemcl's numeric core (``se2``, ``raycast``, ``particles``); the
+settings (``rangemcl.mcl``) and the command-line pipeline (``rangemcl.localize``) build on them.
+"""

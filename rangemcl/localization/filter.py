@@ -5,8 +5,8 @@ LiDAR frame (:class:`MonteCarloLocalizer`).
    noise growing with the motion) and are weighted only once the car has moved ``update_distance_m`` or
    turned ``update_angle_deg`` since the last update; between updates the estimate follows the odometry.
 2. **Weigh**: a subset of the scan's points (``select_rays``: :mod:`rangemcl.localization.scan_prep`) is
-   cast from every particle through the map and scored by the observation model (:mod:`rangemcl.models`;
-   the paper's Eq. 5 by default).
+   cast from every particle through the map (:mod:`rangemcl.localization.renderer`) and scored by the
+   observation model (:mod:`rangemcl.localization.models`; the paper's Eq. 5 by default).
 3. **Search** (global localization): particles start uniform over the drivable area
    (:mod:`rangemcl.localization.spread`), a share of them redrawn at the first update where the place
    prior says the scan fits (:mod:`rangemcl.localization.place_prior`); the cloud is kept as hypotheses
@@ -80,7 +80,7 @@ class MonteCarloLocalizer:
 
     Args:
         mesh_map: the map (its ground grid gives each particle's height; its tiles the paper's rule).
-        scorer: the observation model (:func:`rangemcl.models.make_model`), bound to ``caster``.
+        scorer: the observation model (:func:`rangemcl.localization.models.make_model`), bound to ``caster``.
         caster: the :class:`~rangemcl.raycast.RayCaster` holding the map.
         residual_model: the Eq. 5 kernel :meth:`residuals` reports (the range model's own, or one alike).
         select_rays: ``(points, rng, *, fire_time_s, frame_period_s, frame_motion, roll_pitch,

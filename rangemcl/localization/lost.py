@@ -8,12 +8,12 @@ fall as far. The signal alone cannot always tell the two apart (measured on the 
 five false alarms at the same two places of the test drive, README), so the watch only raises a
 *suspicion*, and the suspicion is tested against the map:
 
-* :class:`SignalWatch`: the best particle's inlier share (:func:`rangemcl.models.inlier_share`: rays far
-  beyond the map, i.e. removed objects, left out) below ``inlier_factor`` x its running median; or below
-  ``inlier_residual_factor`` x that median while the best residual is above ``inlier_residual_jump`` x its
-  own running median (signal ``inliers``); or the best residual above ``factor`` x its median and the
-  model's floor (signal ``residual``, the localizer before issue 13). Suspicious after ``updates`` bad
-  updates in a row.
+* :class:`SignalWatch`: the best particle's inlier share
+  (:func:`rangemcl.localization.models.inlier_share`: rays far beyond the map, i.e. removed objects, left
+  out) below ``inlier_factor`` x its running median; or below ``inlier_residual_factor`` x that median
+  while the best residual is above ``inlier_residual_jump`` x its own running median (signal
+  ``inliers``); or the best residual above ``factor`` x its median and the model's floor (signal
+  ``residual``, the localizer before issue 13). Suspicious after ``updates`` bad updates in a row.
 * :func:`second_opinion`: the prior's best places for *this* scan (away from the estimate) are scored
   with the same observation model and rays as the filter. If one of them explains the scan clearly
   better than the converged cloud's best particle (inlier share higher by ``inlier_gain``, residual

@@ -1,5 +1,5 @@
-"""The per-particle observation kernel (paper Eq. 5) against a reference built from plain ray casts, and
-its ranking of the true pose."""
+"""The particle renderer (the residuals of paper Eq. 5 in one kernel) against a reference built from plain
+ray casts, its ranking of the true pose, and Eq. 5 as the range model's likelihood."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ import pytest
 
 from rangemcl import meshgen
 from rangemcl.errors import InputError
-from rangemcl.observation import ObservationModel
+from rangemcl.localization.models import RangeModel
+from rangemcl.localization.renderer import ParticleRenderer
 from rangemcl.rangeimage import RangeImageGeometry
 from rangemcl.raycast import RayCaster
 from rangemcl.sensors import load_spec
@@ -48,7 +49,7 @@ def test_kernel_matches_plain_ray_casts(scene, cap):
     rng = np.random.default_rng(0)
     particles = true + rng.normal(0, [1.0, 1.0, 0.1], size=(40, 3))
     zs = np.full(40, z)
-    model = ObservationModel(caster, margin_m=2.0, cap_m=cap)
+    model = ParticleRenderer(caster, margin_m=2.0, cap_m=cap)
     model.set_scan(dirs, measured)
     got = model.mean_residuals(particles, zs)
     ref = reference_residuals(caster, particles, zs, dirs, measured, 2.0, cap)
@@ -61,19 +62,19 @@ def test_true_pose_scores_best(scene):
         (dx, dy, dyaw) for dx in (-1, -0.3, 0, 0.3, 1) for dy in (-1, 0, 1) for dyaw in (-0.05, 0, 0.05)
     ]
     particles = true + np.array(offsets)
-    model = ObservationModel(caster, sigma_m=2.0)
+    model = ParticleRenderer(caster)
     model.set_scan(dirs, measured)
     d = model.mean_residuals(particles, z)
     k_true = offsets.index((0, 0, 0))
     assert d[k_true] < 1e-3
     assert np.argmin(d) == k_true and np.sort(d)[1] > 0.02
-    ll = model.log_likelihood(d)
+    ll = RangeModel(model, sigma_m=2.0).log_likelihood(d)
     assert np.argmax(ll) == k_true and ll[k_true] == pytest.approx(-0.5 * d[k_true] ** 2 / 4.0)
 
 
 def test_bad_input(scene):
     caster, true, z, dirs, measured = scene
-    model = ObservationModel(caster)
+    model = ParticleRenderer(caster)
     with pytest.raises(InputError, match="no scan"):
         model.mean_residuals(true[None], z)
     with pytest.raises(InputError, match="ranges"):
@@ -82,5 +83,7 @@ def test_bad_input(scene):
     with pytest.raises(InputError, match="particles"):
         model.mean_residuals(np.array([[np.nan, 0, 0]]), z)
     with pytest.raises(InputError, match="sigma"):
-        ObservationModel(caster, sigma_m=0)
+        RangeModel(model, sigma_m=0)
+    with pytest.raises(InputError, match="margin"):
+        ParticleRenderer(caster, margin_m=0)
     assert model.mean_residuals(np.zeros((0, 3)), z).shape == (0,)

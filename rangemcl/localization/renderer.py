@@ -1,4 +1,5 @@
-"""The range-image observation model (paper Eq. 5), scored for many particles in one Warp kernel.
+"""The particle renderer: each particle's view of the map for one scan's rays, reduced to the residuals
+of the range-image observation model (paper Eq. 5) in one Warp kernel (:class:`ParticleRenderer`).
 
 For each particle ``(x, y, yaw)`` the kernel casts, through the map's BVH, exactly the rays of a subset of
 the measured pixels (each along its measured point's own direction, turned by the particle's yaw, from
@@ -15,7 +16,8 @@ of ``cap_m``, so removed objects weigh less; below ``cap_m`` both directions cos
 there pulls the estimate towards the walls: measured, 0.3-0.8 m of bias). Rays beyond the surface are also
 counted (``beyond``).
 
-``p(z | x) ∝ exp(−½ d² / σ_d²)``: :meth:`ObservationModel.log_likelihood`.
+What the residuals become as a likelihood is the observation models' business
+(:mod:`rangemcl.localization.models`: Eq. 5 there, ``p(z | x) ∝ exp(−½ d² / σ_d²)``).
 """
 
 from __future__ import annotations
@@ -102,12 +104,12 @@ def particle_residual_kernel(
     out_structure[k] = s_agree / wp.max(wp.max(rest - s_far, 0.5 * rest), 1.0)
 
 
-class ObservationModel:
-    """Scores particles against one scan's measured rays in a map loaded into a :class:`RayCaster`.
+class ParticleRenderer:
+    """Renders one scan's measured rays from many particles in a map loaded into a :class:`RayCaster` and
+    reduces them per particle (:meth:`scores`).
 
     Args:
         caster: the map (static mesh; movable meshes are seen at their current poses).
-        sigma_m: σ_d of Eq. 5 (paper 5.0, reference code 2.0).
         margin_m: how far past the measured range a ray is cast.
         cap_m: residual cap (robust variant); ``inf`` for the plain paper model.
         cap_beyond_m: cost of a ray measured more than ``cap_m`` longer than the map's surface (default:
@@ -118,20 +120,17 @@ class ObservationModel:
         self,
         caster: RayCaster,
         *,
-        sigma_m: float = 2.0,
         margin_m: float = 2.0,
         cap_m: float = np.inf,
         cap_beyond_m: float | None = None,
     ):
         if cap_beyond_m is None:
             cap_beyond_m = cap_m
-        if not sigma_m > 0 or not margin_m > 0 or not cap_m > 0 or not cap_beyond_m > 0:
+        if not margin_m > 0 or not cap_m > 0 or not cap_beyond_m > 0:
             raise InputError(
-                f"sigma_m, margin_m, cap_m and cap_beyond_m must be > 0, got {sigma_m}, {margin_m}, {cap_m}, "
-                f"{cap_beyond_m}"
+                f"margin_m, cap_m and cap_beyond_m must be > 0, got {margin_m}, {cap_m}, {cap_beyond_m}"
             )
         self.caster = caster
-        self.sigma_m = float(sigma_m)
         self.margin_m = float(margin_m)
         self.cap_m = float(min(cap_m, 3.0e38))
         self.cap_beyond_m = float(min(cap_beyond_m, self.cap_m))
@@ -196,7 +195,7 @@ class ObservationModel:
         if n == 0:
             return out
         c = self.caster
-        ids, inv, moved = c._scene_arrays()
+        ids, inv, moved = c.scene_arrays()
         dev = c.device
         cpu = dev == "cpu"
         inputs = [
@@ -212,43 +211,12 @@ class ObservationModel:
             float(agree_m),
             float(hist_top_m),
         ]
-        if cpu:
-            outs = [
-                wp.array(out[k], dtype=float, device=dev, copy=False)
-                for k in ("mean", "agree", "beyond", "structure", "hist")
-            ]
-            bounds = np.linspace(0, n, min(n, 4 * c.threads) + 1).astype(int)
-
-            def run(k: int) -> None:
-                lo, hi = int(bounds[k]), int(bounds[k + 1])
-                if hi > lo:
-                    wp.launch(
-                        particle_residual_kernel,
-                        dim=hi - lo,
-                        inputs=[*inputs, lo],
-                        outputs=outs,
-                        device=dev,
-                    )
-
-            if c._pool is None or len(bounds) <= 2:
-                for k in range(len(bounds) - 1):
-                    run(k)
-            else:
-                list(c._pool.map(run, range(len(bounds) - 1)))
-            return out
-        outs = [
-            wp.empty(n, dtype=float, device=dev),
-            wp.empty(n, dtype=float, device=dev),
-            wp.empty(n, dtype=float, device=dev),
-            wp.empty(n, dtype=float, device=dev),
-            wp.zeros(out["hist"].shape, dtype=float, device=dev),
-        ]
-        wp.launch(particle_residual_kernel, dim=n, inputs=[*inputs, 0], outputs=outs, device=dev)
-        return {
-            k: a.numpy() for k, a in zip(("mean", "agree", "beyond", "structure", "hist"), outs, strict=True)
-        }
-
-    def log_likelihood(self, mean_residuals: np.ndarray) -> np.ndarray:
-        """Eq. 5 in log form: ``−½ d² / σ_d²``."""
-        d = np.asarray(mean_residuals, np.float64)
-        return -0.5 * d * d / (self.sigma_m**2)
+        names = ("mean", "agree", "beyond", "structure", "hist")
+        if cpu:  # the kernel writes into the numpy arrays in place
+            outs = [wp.array(out[k], dtype=float, device=dev, copy=False) for k in names]
+        else:
+            outs = [wp.empty(n, dtype=float, device=dev) for _ in names[:-1]]
+            outs.append(wp.zeros(out["hist"].shape, dtype=float, device=dev))
+        # a particle casts hundreds of rays: every particle is worth a chunk of its own
+        c.launch(particle_residual_kernel, n, inputs, outs, min_chunk=1)
+        return out if cpu else {k: a.numpy() for k, a in zip(names, outs, strict=True)}

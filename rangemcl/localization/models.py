@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from rangemcl.errors import InputError
-from rangemcl.observation import ObservationModel
+from rangemcl.localization.renderer import ParticleRenderer
 
 MODEL_NAMES = ("range", "overlap", "likelihood_field", "histogram")
 
@@ -57,23 +57,30 @@ class RangeModel(ScoringModel):
     name = "range"
     lost_floor = 0.3
 
-    def __init__(self, kernel: ObservationModel, sigma_m: float):
+    def __init__(self, kernel: ParticleRenderer, sigma_m: float):
+        if not sigma_m > 0:
+            raise InputError(f"range model: sigma_m must be > 0, got {sigma_m}")
         self.kernel = kernel
         self.sigma = float(sigma_m)
+
+    def log_likelihood(self, mean_residuals: np.ndarray) -> np.ndarray:
+        """Eq. 5 in log form: ``−½ d² / σ_d²``."""
+        d = np.asarray(mean_residuals, np.float64)
+        return -0.5 * d * d / self.sigma**2
 
     def score(self, rays, particles, sensor_z):
         self.kernel.set_scan(rays.directions, rays.ranges, structure=rays.structure)
         out = self.kernel.scores(particles, sensor_z, agree_m=self.inlier_m)
         self.last_inliers = inlier_share(out)
         d = out["mean"].astype(np.float64)
-        return -0.5 * d * d / self.sigma**2, d
+        return self.log_likelihood(d), d
 
 
 class OverlapModel(ScoringModel):
     name = "overlap"
     lost_floor = 0.5
 
-    def __init__(self, kernel: ObservationModel, tau_m: float, sigma: float):
+    def __init__(self, kernel: ParticleRenderer, tau_m: float, sigma: float):
         self.kernel = kernel
         self.tau = float(tau_m)
         self.sigma = float(sigma)
@@ -91,7 +98,7 @@ class HistogramModel(ScoringModel):
     name = "histogram"
     lost_floor = 0.05
 
-    def __init__(self, kernel: ObservationModel, bins: int, top_m: float, sigma: float):
+    def __init__(self, kernel: ParticleRenderer, bins: int, top_m: float, sigma: float):
         self.kernel = kernel  # cast to the full range: histograms need the rendered ranges themselves
         self.bins = int(bins)
         self.top = float(top_m)
@@ -236,13 +243,13 @@ def make_model(name: str, caster, settings, mesh_map) -> ScoringModel:
     beyond = cap if o.cap_beyond_m is None else o.cap_beyond_m
     if name == "range":
         return RangeModel(
-            ObservationModel(caster, sigma_m=o.sigma_m, margin_m=o.margin_m, cap_m=cap, cap_beyond_m=beyond),
+            ParticleRenderer(caster, margin_m=o.margin_m, cap_m=cap, cap_beyond_m=beyond),
             o.sigma_m,
         )
     if name == "overlap":
-        return OverlapModel(ObservationModel(caster, margin_m=o.margin_m), o.overlap_tau_m, o.overlap_sigma)
+        return OverlapModel(ParticleRenderer(caster, margin_m=o.margin_m), o.overlap_tau_m, o.overlap_sigma)
     if name == "histogram":
-        kernel = ObservationModel(caster, margin_m=max(o.max_range_m, 1.0))
+        kernel = ParticleRenderer(caster, margin_m=max(o.max_range_m, 1.0))
         return HistogramModel(kernel, o.histogram_bins, o.max_range_m, o.histogram_sigma)
     if name == "likelihood_field":
         return LikelihoodFieldModel(
