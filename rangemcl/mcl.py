@@ -145,6 +145,8 @@ class RecoverySettings:
     max_vetoed_updates: int = 30  # a suspicion lasting this many updates is lost all the same
     probation_updates: int = 10  # after each convergence, a second opinion at this many updates ...
     probation_hits: int = 2  # ... lost when it finds a better place this many times in a row
+    opinion_hits: int = 2  # a suspicion is lost when the second opinion finds a better place this many
+    # times in a row, each where the last one moved with the odometry (within separation_m)
 
 
 @dataclass
@@ -191,6 +193,7 @@ class LocalizerSettings:
             "recovery.opinion_per_place": r.opinion_per_place,
             "recovery.max_vetoed_updates": r.max_vetoed_updates,
             "recovery.probation_hits": r.probation_hits,
+            "recovery.opinion_hits": r.opinion_hits,
             "recovery.opinion_badness_ratio": r.opinion_badness_ratio,
             "recovery.opinion_min_range_m": r.opinion_min_range_m,
             "convergence.cluster_m": c.cluster_m,
@@ -399,6 +402,8 @@ def build_localizer(
             max_vetoed_updates=r.max_vetoed_updates,
             probation_updates=r.probation_updates,
             probation_hits=r.probation_hits,
+            opinion_hits=r.opinion_hits,
+            consistent_m=c.separation_m,
         )
     return MonteCarloLocalizer(
         mesh_map,

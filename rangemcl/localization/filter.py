@@ -214,6 +214,7 @@ class MonteCarloLocalizer:
         self._prior_pending = False  # a global spread waits for a scan to draw from the prior
         self._leader: np.ndarray | None = None  # per particle: descends from the last leading cluster
         self._moved_m = 0.0
+        self._motion = np.zeros(3)
         self.hypotheses: list = []  # the search's clusters at the last update, largest share first
 
     @property
@@ -387,6 +388,7 @@ class MonteCarloLocalizer:
     def _move(self) -> None:
         increment = odometry_increment(np.zeros(3), self.pending)
         self._moved_m = float(math.hypot(self.pending[0], self.pending[1]))
+        self._motion = self.pending.copy()  # this update's odometry, in the previous update's pose
         self.particles = sample_motion(self.particles, increment, self.noise, self.rng)
         self.last_estimate = se2_compose(self.last_estimate, self.pending)
         self.pending = np.zeros(3)
@@ -423,7 +425,7 @@ class MonteCarloLocalizer:
                 if self.use_prior and level is not None
                 else None
             )
-            lost, out["vetoed"] = self.lost.update(best, inliers, opinion)
+            lost, out["vetoed"] = self.lost.update(best, inliers, opinion, self._motion)
             if lost:
                 self.recoveries += 1
                 self.spread(max(self._spread_count, self.global_count))

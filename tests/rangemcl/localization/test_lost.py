@@ -9,7 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from rangemcl.localization.lost import SignalWatch, candidate_particles, second_opinion
+from rangemcl.localization.lost import LostDetector, Opinion, SignalWatch, candidate_particles, second_opinion
+from rangemcl.se2 import se2_compose
 
 
 def test_the_watch_needs_bad_updates_in_a_row_against_its_own_level():
@@ -101,3 +102,54 @@ def test_no_candidate_far_enough_is_no_opinion():
     cand = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 0.0]])
     op = second_opinion(_scorer(np.zeros(3)), np.zeros(3), 1.0, 0.1, cand, min_distance_m=5.0)
     assert not op.better and op.candidates == 0
+
+
+def _detector(**kw):
+    watch = SignalWatch(signal="inliers", updates=2)
+    for _ in range(10):
+        watch.update(0.1, 0.9)
+    return LostDetector(watch, probation_updates=0, **kw)
+
+
+def test_a_suspicion_is_lost_only_when_one_place_keeps_fitting_better():
+    motion = np.array([0.8, 0.0, 0.02])  # the car's odometry between updates
+    # better places that jump about (a wall here, a wall there): vetoed every time
+    det = _detector()
+    rng = np.random.default_rng(3)
+    results = []
+    for _ in range(8):
+        pose = np.array([*rng.uniform(-200, 200, 2), 0.0])
+        results.append(det.update(0.6, 0.3, lambda p=pose: Opinion(True, p, 0.3, 0.9, 400), motion))
+    assert results[:2] == [(False, False), (False, True)]  # the second bad update makes the suspicion
+    assert all(r == (False, True) for r in results[1:]) and det.vetoed_alarms == 1
+    # one place that moves with the odometry: lost at its second confirmation
+    det = _detector()
+    place = np.array([50.0, -20.0, 1.0])
+    out = []
+    for _ in range(4):
+        out.append(det.update(0.6, 0.3, lambda p=place.copy(): Opinion(True, p, 0.3, 0.9, 400), motion))
+        place = se2_compose(place, motion)
+    assert out[0] == (False, False) and out[1] == (False, True) and out[2] == (True, False)
+    # no better place: vetoed until the suspicion has lasted max_vetoed_updates
+    det = _detector(max_vetoed_updates=5)
+    out = [det.update(0.6, 0.3, lambda: Opinion(False, np.zeros(3), 0.7, 0.2, 400), motion) for _ in range(5)]
+    assert [o[0] for o in out] == [False, False, False, False, True]
+
+
+def test_probation_undoes_a_convergence_when_a_better_place_is_confirmed():
+    watch = SignalWatch(signal="inliers", updates=5)
+    det = LostDetector(watch, probation_updates=3, probation_hits=2)
+    det.start_probation()
+    motion = np.array([1.0, 0.0, 0.0])
+    place = np.array([10.0, 0.0, 0.0])
+    out = []
+    for _ in range(2):
+        out.append(det.update(0.1, 0.9, lambda p=place.copy(): Opinion(True, p, 0.1, 0.95, 400), motion)[0])
+        place = se2_compose(place, motion)
+    assert out == [False, True]
+    # after the probation, an unsuspicious filter asks nobody
+    det.start_probation()
+    calls = []
+    for _ in range(5):
+        det.update(0.1, 0.9, lambda: calls.append(1) or Opinion(False, np.zeros(3), 0.5, 0.5, 1), motion)
+    assert len(calls) == 3
