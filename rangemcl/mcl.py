@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 
@@ -302,6 +303,22 @@ class LocalizerSettings:
 # ---------------------------------------------------------------------------------------------- scan rays
 
 
+def ray_selector(settings: ObservationSettings):
+    """:func:`rangemcl.localization.scan_prep.select_rays` with the observation settings' values bound:
+    ``(points, rng, *, fire_time_s, frame_period_s, frame_motion, roll_pitch, sensor_height_m)``."""
+    o = settings
+    return partial(
+        select_rays,
+        rays=o.rays,
+        sampling=o.ray_sampling,
+        ground_share=o.ground_share,
+        min_range_m=o.min_range_m,
+        max_range_m=o.max_range_m,
+        deskew=o.deskew,
+        level_with_imu=o.level_with_imu,
+    )
+
+
 def prepare_rays(
     points: np.ndarray,
     settings: ObservationSettings,
@@ -313,27 +330,16 @@ def prepare_rays(
     roll_pitch: tuple[float, float] | None = None,
     sensor_height_m: float = 1.73,
 ) -> ScanRays | None:
-    """:func:`rangemcl.localization.scan_prep.select_rays` with the observation settings' values."""
-    o = settings
-    return select_rays(
+    """The scan's rays for one update with the observation settings (:func:`ray_selector`)."""
+    return ray_selector(settings)(
         points,
         rng,
-        rays=o.rays,
-        sampling=o.ray_sampling,
-        ground_share=o.ground_share,
-        min_range_m=o.min_range_m,
-        max_range_m=o.max_range_m,
-        deskew=o.deskew,
-        level_with_imu=o.level_with_imu,
         fire_time_s=fire_time_s,
         frame_period_s=frame_period_s,
         frame_motion=frame_motion,
         roll_pitch=roll_pitch,
         sensor_height_m=sensor_height_m,
     )
-
-
-# ---------------------------------------------------------------------------------------------- the filter
 
 
 def build_localizer(
@@ -359,8 +365,6 @@ def build_localizer(
         sensor_height_m: the sensor's height above the ground (default: settings, then the map, then 1.73).
         caster: an existing :class:`RayCaster` holding the map (shared between filters), else one is made.
     """
-    from functools import partial
-
     from rangemcl.localization.models import RangeModel, make_model
 
     s = settings or LocalizerSettings()
@@ -410,16 +414,7 @@ def build_localizer(
         scorer,
         caster=caster,
         residual_model=residual_model,
-        select_rays=partial(
-            select_rays,
-            rays=o.rays,
-            sampling=o.ray_sampling,
-            ground_share=o.ground_share,
-            min_range_m=o.min_range_m,
-            max_range_m=o.max_range_m,
-            deskew=o.deskew,
-            level_with_imu=o.level_with_imu,
-        ),
+        select_rays=ray_selector(o),
         area=drivable_cells(mesh_map, i.drive_radius_m),
         noise=MotionNoise(m.rot_per_rot, m.rot_per_trans, m.trans_per_trans, m.trans_per_rot),
         lost=lost,
