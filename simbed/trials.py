@@ -77,7 +77,7 @@ class Trial:
 
 
 # in every trial key: the localizer's defaults changed (issue 13: place prior, hypotheses, change-robust
-# observation; revision 3: the second opinion on lost alarms; 4: ... confirmed at two updates in a row),
+# observation; revision 3: the second opinion on lost alarms; 4: ... confirmed at two updates),
 # so trials of earlier revisions (keys without "-v4") are never taken for today's
 LOCALIZER_REVISION = 4
 

@@ -17,8 +17,9 @@ five false alarms at the same two places of the test drive, README), so the watc
 * :func:`second_opinion`: the prior's best places for *this* scan (away from the estimate) are scored
   with the same observation model and rays as the filter. If one of them explains the scan clearly
   better than the converged cloud's best particle (inlier share higher by ``inlier_gain``, residual
-  lower) at ``opinion_hits`` updates in a row, each time where the previous one's place has moved with
-  the odometry (within ``consistent_m``), the filter is at the wrong place: lost. (One better place alone
+  lower) at ``opinion_hits`` updates, each time where the previous one's place has moved with the
+  odometry (within ``consistent_m``; at most ``max_misses`` updates without it in between), the filter
+  is at the wrong place: lost. (One better place alone
   is not enough: on the sparse MQ-8, a vehicle passing 5-8 m away let a place 210 m off fit the far rays
   better at one update, measured on the `town_medium` suite.) If none does, the world changed and the
   filter stays where it is (the alarm is *vetoed* and counted). A suspicion that lasts
@@ -197,6 +198,7 @@ class LostDetector:
         probation_hits: int = 2,
         opinion_hits: int = 2,
         consistent_m: float = 5.0,
+        max_misses: int = 2,
     ):
         self.watch = watch
         self.second_opinion = bool(second_opinion)
@@ -210,6 +212,8 @@ class LostDetector:
         self.probation_hits = int(probation_hits)
         self.opinion_hits = int(opinion_hits)
         self.consistent_m = float(consistent_m)
+        self.max_misses = int(max_misses)
+        self._misses = 0
         self.vetoed_alarms = 0  # suspicions the second opinion vetoed (episodes)
         self._probation = 0  # updates left in which each update gets a second opinion
         self._hits = 0  # consistent better places in a row
@@ -227,20 +231,31 @@ class LostDetector:
 
     def _streak_reset(self) -> None:
         self._hits = 0
+        self._misses = 0
         self._last = None
 
     def _count(self, found: Opinion | None, motion) -> None:
-        """Extend the streak of better places when this one lies where the last one has moved to."""
-        if found is None or not found.better:
-            self._streak_reset()
-            return
-        consistent = False
+        """Count the confirmations of one rival place: a better place where the last one has moved to
+        (with the odometry) confirms it; a better place elsewhere starts a new count; an update that
+        finds no better place keeps the count (the inlier share is noisy from scan to scan) and moves the
+        rival on, until more than ``max_misses`` such updates in a row drop it."""
+        expected = None
         if self._last is not None:
             expected = se2_compose(self._last, np.asarray(motion, np.float64).reshape(3))
+        if found is None or not found.better:
+            self._misses += 1
+            if expected is None or self._misses > self.max_misses:
+                self._streak_reset()
+            else:
+                self._last = expected
+            return
+        consistent = False
+        if expected is not None:
             gap = math.hypot(found.pose[0] - expected[0], found.pose[1] - expected[1])
             turn = abs(wrap_angle(found.pose[2] - expected[2]))
             consistent = gap <= self.consistent_m and turn <= math.radians(20.0)
         self._hits = self._hits + 1 if consistent else 1
+        self._misses = 0
         self._last = np.asarray(found.pose, np.float64).copy()
 
     def update(self, best: float, inliers: float, opinion, motion=(0.0, 0.0, 0.0)) -> tuple[bool, bool]:

@@ -141,7 +141,8 @@ def test_tracking_follows_and_recovers_after_a_teleport(world):
     assert loc_err[:jump].max() < 0.5  # tracking
     assert loc_err[jump] > 20  # kidnapped
     recovered_at = [k for k, i in enumerate(infos) if i.recovered]
-    assert recovered_at and jump <= recovered_at[0] < jump + 15
+    # a suspicion after 5 bad updates, then the same better place confirmed at two of them
+    assert recovered_at and jump <= recovered_at[0] < jump + 20
     assert infos[recovered_at[0]].particles == s.particles.global_count
     assert loc.recoveries >= 1
     assert infos[-1].converged

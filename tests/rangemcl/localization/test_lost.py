@@ -153,3 +153,22 @@ def test_probation_undoes_a_convergence_when_a_better_place_is_confirmed():
     for _ in range(5):
         det.update(0.1, 0.9, lambda: calls.append(1) or Opinion(False, np.zeros(3), 0.5, 0.5, 1), motion)
     assert len(calls) == 3
+
+
+def test_one_update_without_the_rival_does_not_undo_its_confirmation():
+    motion = np.array([0.8, 0.0, 0.0])
+    det = _detector()
+    place = np.array([50.0, -20.0, 0.0])
+    better = [True, True, False, True]  # the suspicion starts at the second update
+    out = []
+    for b in better:
+        out.append(det.update(0.6, 0.3, lambda p=place.copy(), b=b: Opinion(b, p, 0.3, 0.9, 400), motion)[0])
+        place = se2_compose(place, motion)
+    assert out == [False, False, False, True]
+    # three misses in a row drop the rival: the next better place starts a new count
+    det = _detector()
+    out = []
+    for b in [True, True, False, False, False, True]:
+        out.append(det.update(0.6, 0.3, lambda p=place.copy(), b=b: Opinion(b, p, 0.3, 0.9, 400), motion)[0])
+        place = se2_compose(place, motion)
+    assert not any(out)
