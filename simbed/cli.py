@@ -174,10 +174,20 @@ def trials(
     report_only: bool = typer.Option(
         False, help="Run nothing: write the table and figure from the trials already in results.csv."
     ),
+    compare: list[str] = typer.Option(
+        None,
+        help="With --report-only: also report the same trials run with this localizer settings YAML "
+        "('default': no --config), side by side (a method column); may be given more than once.",
+    ),
 ) -> None:
     """Run (or continue) one of the paper's experiments as a suite of localization trials."""
+    from dataclasses import replace
+
+    from rangemcl.errors import InputError
     from simbed.trials import SuiteConfig, run_suite, suite_settings
 
+    if compare and not report_only:
+        raise InputError("--compare: only with --report-only (run each method with its own --config)")
     suite_config = SuiteConfig(
         scene=scene,
         route=route,
@@ -193,6 +203,12 @@ def trials(
         settings="" if config is None else suite_settings(config),
         method="default" if config is None else config.stem,
     )
+    others = tuple(
+        replace(suite_config, settings="", method="default")
+        if c == "default"
+        else replace(suite_config, settings=suite_settings(Path(c)), method=Path(c).stem)
+        for c in compare or ()
+    )
     rows = run_suite(
         suite,
         out,
@@ -205,6 +221,7 @@ def trials(
         device=device,
         say=typer.echo,
         report_only=report_only,
+        compare=others,
     )
     ok = sum(str(r["success"]).lower() == "true" for r in rows)
     typer.echo(

@@ -350,16 +350,18 @@ def run_suite(
     device: str = "cpu",
     say=print,
     report_only: bool = False,
+    compare: tuple[SuiteConfig, ...] = (),
 ) -> list[dict]:
     """Run (or continue) a suite; write results.csv, SUITE.md and SUITE.png; return the suite's rows.
 
     ``report_only``: run nothing; write SUITE.md and SUITE.png from the trials already in results.csv
-    (e.g. of a suite stopped part-way; the table counts the trials it holds)."""
+    (e.g. of a suite stopped part-way; the table counts the trials it holds); ``compare``: other suite
+    configs (other localizer settings) whose trials join the report, side by side."""
     from rangemcl.mapping.meshmap import MeshMap
 
     out = Path(out_dir)
     if report_only:
-        keys = {t.key for t in suite_trials(suite, quick, config)}
+        keys = {t.key for cfg in (config, *compare) for t in suite_trials(suite, quick, cfg)}
         rows = [r for r in read_results(out / "results.csv") if r["key"] in keys]
         if not rows:
             raise InputError(

@@ -219,3 +219,24 @@ def test_report_sets_methods_side_by_side_with_their_event_counts(tmp_path):
     old = [{k: v for k, v in r.items() if k not in ("method", "false_alarms")} for r in rows[:2]]
     table = write_report("sensors", old, tmp_path)[0].read_text()
     assert "| vlp-16 | 2 | 2 | 0 | 0 | 1 | 0 | – |" in table
+    # --report-only --compare: the same trials of another method join the table (keys of both configs)
+    cfg = tmp_path / "paper.yaml"
+    cfg.write_text("init:\n  place_prior: false\n")
+    paper = replace(CONFIG, sensors=("vlp-16",), settings=suite_settings(cfg), method="paper")
+    ours = replace(CONFIG, sensors=("vlp-16",))
+    keyed = [
+        {**rows[k], "key": t.key}
+        for k, t in enumerate(suite_trials("sensors", False, ours) + suite_trials("sensors", False, paper))
+    ]
+    out = tmp_path / "cmp"
+    out.mkdir()
+    with open(out / "results.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(keyed[0]))
+        w.writeheader()
+        w.writerows(keyed)
+    got = run_suite("sensors", out, None, config=ours, report_only=True, compare=(paper,), say=lambda _: None)
+    assert len(got) == 4
+    table = (out / "sensors.md").read_text()
+    assert "| default | vlp-16 | 2 | 2 |" in table and "| paper | vlp-16 | 2 | 1 |" in table
+    alone = run_suite("sensors", out, None, config=ours, report_only=True, say=lambda _: None)
+    assert len(alone) == 2 and "| method |" not in (out / "sensors.md").read_text()
