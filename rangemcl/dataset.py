@@ -665,6 +665,38 @@ class SequenceWriter:
         return False
 
 
+def perturb_odometry(
+    odometry: np.ndarray, times: np.ndarray, *, scale: float = 1.0, yaw_bias_rad_s: float = 0.0
+) -> np.ndarray:
+    """Odometry poses ``(N, 4, 4)`` as a miscalibrated car would report them: each frame's planar step
+    (in the previous frame's pose) with its translation times ``scale`` (a wheel-radius error) and its
+    yaw change plus ``yaw_bias_rad_s`` x the frame's duration (a gyro bias), chained again from the
+    first pose; height, roll and pitch of each pose are kept."""
+    from rangemcl.se2 import pose_matrix, se2_between, se2_compose, yaw_matrix
+
+    T = np.asarray(odometry, np.float64)
+    t = np.asarray(times, np.float64).reshape(-1)
+    if T.ndim != 3 or T.shape[1:] != (4, 4) or len(t) != len(T):
+        raise InputError(f"odometry: expected (N, 4, 4) poses and N times, got {T.shape} and {t.shape}")
+    if not (np.isfinite(scale) and scale > 0 and np.isfinite(yaw_bias_rad_s)):
+        raise InputError(
+            f"odometry perturbation: scale must be > 0 and the bias finite, got {scale}, {yaw_bias_rad_s}"
+        )
+    xyyaw = np.column_stack([T[:, 0, 3], T[:, 1, 3], np.arctan2(T[:, 1, 0], T[:, 0, 0])])
+    out = T.copy()
+    pose = xyyaw[0].copy()
+    for k in range(1, len(T)):
+        step = se2_between(xyyaw[k - 1], xyyaw[k])
+        step[:2] *= scale
+        step[2] += yaw_bias_rad_s * (t[k] - t[k - 1])
+        pose = se2_compose(pose, step)
+        planar = pose_matrix(pose[0], pose[1], pose[2], T[k, 2, 3])
+        # keep the frame's own tilt: its rotation relative to its own heading
+        planar[:3, :3] = planar[:3, :3] @ (yaw_matrix(xyyaw[k, 2]).T @ T[k, :3, :3])
+        out[k] = planar
+    return out
+
+
 def splice_kidnapped(seq_dir, out, a: int, b: int, half: int) -> Path:
     """A kidnapped-car sequence: frames ``a .. a+half-1`` of ``seq_dir``, then frames ``b .. b+half-1``,
     whose odometry carries on smoothly across the jump (the car is teleported; its odometry does not see

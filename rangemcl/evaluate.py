@@ -35,6 +35,18 @@ def pose_errors(estimate_xyyaw: np.ndarray, truth_xyyaw: np.ndarray) -> tuple[np
     return loc, yaw
 
 
+def track_errors(estimate_xyyaw: np.ndarray, truth_xyyaw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Signed along-track and cross-track errors (m): the estimate's offset from the truth in the true
+    pose's own frame (along: x forward, positive ahead of the car; cross: y, positive to its left)."""
+    e = np.asarray(estimate_xyyaw, np.float64)
+    t = np.asarray(truth_xyyaw, np.float64)
+    if e.shape != t.shape or e.ndim != 2 or e.shape[1] != 3:
+        raise InputError(f"estimate {e.shape} and truth {t.shape} must both be (N, 3) x, y, yaw")
+    dx, dy = e[:, 0] - t[:, 0], e[:, 1] - t[:, 1]
+    c, s = np.cos(t[:, 2]), np.sin(t[:, 2])
+    return c * dx + s * dy, -s * dx + c * dy
+
+
 def localization_metrics(
     estimate_xyyaw: np.ndarray,
     truth_xyyaw: np.ndarray,

@@ -5,7 +5,9 @@ alarm."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
+from rangemcl.errors import InputError
 from rangemcl.evaluate import convergence_events, localization_metrics
 
 
@@ -47,3 +49,45 @@ def test_no_events_no_counts():
     est, truth = trajectory()
     m = localization_metrics(est[30:], truth[30:], 0)
     assert m["wrong_convergences_count"] == 0 and m["false_alarms_count"] == 0 and m["convergences"] == 0
+
+
+def test_track_errors_split_the_offset_along_and_across_the_true_heading():
+    from rangemcl.evaluate import track_errors
+
+    truth = np.array([[0.0, 0.0, 0.0], [5.0, 5.0, np.pi / 2], [1.0, 2.0, np.pi]])
+    est = truth + np.array([[0.3, 0.1, 0.0], [0.3, 0.1, 0.0], [0.3, 0.1, 0.0]])
+    along, cross = track_errors(est, truth)
+    np.testing.assert_allclose(along, [0.3, 0.1, -0.3], atol=1e-12)  # ahead when heading +x, ...
+    np.testing.assert_allclose(cross, [0.1, -0.3, -0.1], atol=1e-12)  # ... left of the car positive
+    rng = np.random.default_rng(0)
+    t = np.column_stack([rng.uniform(-50, 50, (200, 2)), rng.uniform(-np.pi, np.pi, 200)])
+    e = t + np.column_stack([rng.normal(0, 1, (200, 2)), np.zeros(200)])
+    a, c = track_errors(e, t)
+    np.testing.assert_allclose(np.hypot(a, c), np.hypot(*(e[:, :2] - t[:, :2]).T))  # a rotation: lengths kept
+
+
+def test_perturbed_odometry_scales_distance_and_adds_the_gyro_bias():
+    from rangemcl.dataset import perturb_odometry
+    from rangemcl.evaluate import xyyaw_of
+    from rangemcl.se2 import pose_matrix, yaw_matrix
+
+    # a drive along a circle of 20 m radius at 5 m/s, 10 Hz, on a slope (z rises, pitch kept)
+    t = np.arange(200) * 0.1
+    ang = 0.25 * t
+    poses = pose_matrix(20 * np.sin(ang), 20 * (1 - np.cos(ang)), ang, 0.05 * t)
+    pitch = np.array([[np.cos(0.05), 0, np.sin(0.05)], [0, 1, 0], [-np.sin(0.05), 0, np.cos(0.05)]])
+    poses[:, :3, :3] = poses[:, :3, :3] @ pitch
+    same = perturb_odometry(poses, t)
+    np.testing.assert_allclose(same, poses, atol=1e-9)
+    longer = xyyaw_of(perturb_odometry(poses, t, scale=1.03))
+    steps = np.hypot(*np.diff(longer[:, :2], axis=0).T)
+    np.testing.assert_allclose(steps.sum(), 1.03 * np.hypot(*np.diff(xyyaw_of(poses)[:, :2], axis=0).T).sum())
+    biased = perturb_odometry(poses, t, yaw_bias_rad_s=np.radians(0.5))
+    drift = np.unwrap(xyyaw_of(biased)[:, 2]) - np.unwrap(ang)
+    np.testing.assert_allclose(drift, np.radians(0.5) * t, atol=1e-9)
+    np.testing.assert_allclose(biased[:, 2, 3], poses[:, 2, 3])  # height kept ...
+    yaw_b = xyyaw_of(biased)[:, 2]  # ... and the tilt relative to the heading
+    tilt = np.einsum("nji,njk->nik", yaw_matrix(yaw_b), biased[:, :3, :3])
+    np.testing.assert_allclose(tilt, np.broadcast_to(pitch, tilt.shape), atol=1e-9)
+    with pytest.raises(InputError, match="scale"):
+        perturb_odometry(poses, t, scale=0.0)
