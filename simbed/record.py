@@ -88,6 +88,7 @@ def record(
         "sensor": spec.to_dict(),
         "frames_requested": frames,
         "point_labels": {"0": "static world", "1": "moving actor"},
+        "odometry": drive.odometry_errors(),
     }
     summary = RecordSummary(out, 0, 0.0, path.length_m, 0.0, False)
     last = None

@@ -76,6 +76,28 @@ class Drive:
         self.odometry.reset(world.data)
         self.t0 = world.time
 
+    def odometry_errors(self) -> dict:
+        """What this drive's wheel-and-gyro odometry gets wrong, drawn from the run's seed
+        (:class:`~simbed.vehicle.OdometryNoise`: the spreads, 1 sigma) and the values drawn for this drive:
+        the wheel radius's relative error (distance x ``wheel_scale``) and the gyro's initial bias (it
+        then random-walks)."""
+        o = self.odometry
+        n = o.noise
+        return {
+            "wheel_scale": round(float(o.scale), 6),
+            "gyro_bias_initial_deg_s": round(float(np.degrees(o.bias)), 6),
+            "spreads_1sigma": {
+                "wheel_scale": n.wheel_scale,
+                "wheel_noise_m_per_sqrt_m": n.wheel_noise_m_per_sqrt_m,
+                "gyro_bias_deg_s": round(float(np.degrees(n.gyro_bias_rad_s)), 6),
+                "gyro_bias_walk_deg_s_per_sqrt_s": round(
+                    float(np.degrees(n.gyro_bias_walk_rad_s_per_sqrt_s)), 6
+                ),
+                "gyro_noise_deg_per_sqrt_s": round(float(np.degrees(n.gyro_noise_rad_per_sqrt_s)), 6),
+                "imu_roll_pitch_deg": round(float(np.degrees(n.imu_roll_pitch_rad)), 6),
+            },
+        }
+
     def _brake_and_settle(self, seconds: float) -> None:
         d = self.world.data
         for _ in range(int(round(seconds / self.dt))):

@@ -197,5 +197,9 @@ def test_odometry_drifts_but_tracks(tmp_path):
     step_true = np.linalg.norm(np.diff(seq.poses[:, :2, 3], axis=0), axis=1)
     step_odom = np.linalg.norm(np.diff(seq.odometry[:, :2, 3], axis=0), axis=1)
     assert np.abs(step_true - step_odom).max() < 0.05
+    # the drive's drawn wheel scale is in meta.yaml, and it is what the odometry's distance shows
+    drawn = seq.meta["odometry"]["wheel_scale"]
+    assert drawn != 1.0 and seq.meta["odometry"]["spreads_1sigma"]["wheel_scale"] == 0.01
+    assert abs(step_odom.sum() / step_true.sum() - drawn) < 0.004
     roll_pitch = seq.imu_roll_pitch
     assert np.abs(roll_pitch).max() < np.deg2rad(5)
