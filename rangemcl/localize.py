@@ -154,7 +154,7 @@ class LocalizationPipeline:
         self.opt = options or RunOptions()
         self.snapshots: dict[str, np.ndarray] = {}
         self.events = dict(
-            converged_frame=None if self.opt.mode == "global" else 0,
+            converged_frame=None,  # tracking: the first frame (set by load)
             updates=0,
             resamples=0,
             recoveries=0,

@@ -19,9 +19,9 @@ five false alarms at the same two places of the test drive, README), so the watc
   better than the converged cloud's best particle (inlier share higher by ``inlier_gain``, residual
   lower) at ``opinion_hits`` updates, each time where the previous one's place has moved with the
   odometry (within ``consistent_m``; at most ``max_misses`` updates without it in between), the filter
-  is at the wrong place: lost. (One better place alone
-  is not enough: on the sparse MQ-8, a vehicle passing 5-8 m away let a place 210 m off fit the far rays
-  better at one update, measured on the `town_medium` suite.) If none does, the world changed and the
+  is at the wrong place: lost. (One better place alone is not enough: on the `town_medium` suite an
+  MQ-8 at the true pose met, at one update, a place 210 m off that fit its far rays better; the cause at
+  that update was not traced.) If none does, the world changed and the
   filter stays where it is (the alarm is *vetoed* and counted). A suspicion that lasts
   ``max_vetoed_updates`` updates is taken as lost all the same, so that a true place missing from the
   prior cannot pin the filter to a wrong one for ever.

@@ -25,10 +25,10 @@ from rangemcl.mcl import (
     prepare_rays,
     rotation_roll_pitch,
     se2_between,
-    se2_compose,
 )
 from rangemcl.rangeimage import RangeImageGeometry
 from rangemcl.raycast import RayCaster
+from rangemcl.se2 import se2_compose
 from rangemcl.sensors import load_spec
 
 HEIGHT = 1.73
