@@ -5,7 +5,8 @@ by :meth:`LocalizerSettings.check`) and :func:`build_localizer`, which makes the
 The filter's stages live in :mod:`rangemcl.localization`: scan preparation (``scan_prep``), the drivable
 area (``spread``), the place prior (``place_prior``), the hypothesis search (``hypotheses``), lost
 detection (``lost``) and the core that composes them (``filter``). This module re-exports the core's
-name ``MonteCarloLocalizer`` and the SE(2) helpers that callers used to take from here.
+names (``MonteCarloLocalizer``, ``StepInfo``, ``DrivableArea``) and the SE(2) helpers that callers used
+to take from here (old import paths keep working).
 """
 
 from __future__ import annotations
@@ -17,25 +18,29 @@ from functools import partial
 import numpy as np
 
 from rangemcl.errors import InputError
-from rangemcl.localization.filter import MonteCarloLocalizer
+from rangemcl.localization.filter import MonteCarloLocalizer, StepInfo
 from rangemcl.localization.lost import LostDetector, SignalWatch
 from rangemcl.localization.place_prior import PriorParams
 from rangemcl.localization.renderer import ParticleRenderer
 from rangemcl.localization.scan_prep import RAY_SAMPLINGS, ScanRays, select_rays
-from rangemcl.localization.spread import drivable_cells
+from rangemcl.localization.spread import DrivableArea, drivable_cells
 from rangemcl.mapping.meshmap import MeshMap
 from rangemcl.particles import MotionNoise
 from rangemcl.raycast import RayCaster
-from rangemcl.se2 import rotation_roll_pitch, se2_between
+from rangemcl.se2 import rotation_roll_pitch, se2_between, se2_compose, wrap_angle
 
 __all__ = [
+    "DrivableArea",
     "LocalizerSettings",
     "MonteCarloLocalizer",
+    "StepInfo",
     "build_localizer",
     "drivable_cells",
     "prepare_rays",
     "rotation_roll_pitch",
     "se2_between",
+    "se2_compose",
+    "wrap_angle",
 ]
 
 # ---------------------------------------------------------------------------------------------- settings
