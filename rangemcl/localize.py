@@ -44,7 +44,8 @@ from rangemcl.mcl import (
 
 FRAME_COLUMNS = (
     "frame,time_s,x,y,yaw,particles,converged,updated,resampled,skipped_scan,recovered,"
-    "best_residual_m,seconds,hypotheses,evidence_nats,inliers,vetoed"
+    "best_residual_m,seconds,hypotheses,evidence_nats,inliers,vetoed,refined,refine_shift_m,"
+    "odometry_scale,gyro_bias_deg_s"
 )
 
 
@@ -249,7 +250,12 @@ class LocalizationPipeline:
                 searching = not loc.converged and self.opt.mode == "global"
                 if k == 0 or i in snap_at or (searching and k % 10 == 0 and len(self.snapshots) < 8):
                     self.snapshots[f"frame_{i:06d}"] = loc.particles.copy()
-                info = loc.step(delta, points, fire_time_s=fire, frame_period_s=period, roll_pitch=rp)
+                dt = None
+                if i > first:
+                    dt = float(seq.times[i] - seq.times[i - 1]) if seq.times is not None else period
+                info = loc.step(
+                    delta, points, fire_time_s=fire, frame_period_s=period, roll_pitch=rp, dt_s=dt
+                )
                 self._record(k, i, info)
                 csv.write(self._csv_line(i, info))
                 csv.flush()
@@ -317,6 +323,17 @@ class LocalizationPipeline:
             "convergence_frames": ev["convergence_frames"],
             "vetoed_alarms": loc.vetoed_alarms,
             "vetoed_frames": ev["vetoed_frames"],
+            "refinements": loc.refinements,
+            "refused_refinements": loc.refused_refinements,
+            "odometry_calibration": None
+            if loc.calibrator is None
+            else {
+                "scale": loc.calibrator.scale,
+                "gyro_bias_deg_s": math.degrees(loc.calibrator.gyro_bias),
+                "observed_distance_m": loc.calibrator.distance_m,
+                "intervals": loc.calibrator.observed,
+                "intervals_left_out": loc.calibrator.rejected,
+            },
             "skipped_scans": ev["skipped_scans"],
             "unreadable_scans": ev["unreadable_scans"],
             "odometry_source": self.odo_source,
@@ -403,7 +420,8 @@ class LocalizationPipeline:
             f"{i},{t:.6f},{e[0]:.4f},{e[1]:.4f},{e[2]:.6f},{info.particles},{int(info.converged)},"
             f"{int(info.updated)},{int(info.resampled)},{int(info.skipped_scan)},{int(info.recovered)},"
             f"{info.best_residual_m:.4f},{info.seconds:.4f},{info.hypotheses},{info.evidence_nats:.3f},"
-            f"{info.inliers:.3f},{int(info.vetoed)}\n"
+            f"{info.inliers:.3f},{int(info.vetoed)},{info.refined},{info.refine_shift_m:.4f},"
+            f"{info.odometry_scale:.5f},{info.gyro_bias_deg_s:.4f}\n"
         )
 
 

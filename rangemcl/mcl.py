@@ -18,9 +18,11 @@ from functools import partial
 import numpy as np
 
 from rangemcl.errors import InputError
+from rangemcl.localization.calibration import OdometryCalibrator
 from rangemcl.localization.filter import MonteCarloLocalizer, StepInfo
 from rangemcl.localization.lost import LostDetector, SignalWatch
 from rangemcl.localization.place_prior import PriorParams
+from rangemcl.localization.refine import ScanRefiner
 from rangemcl.localization.renderer import ParticleRenderer
 from rangemcl.localization.scan_prep import RAY_SAMPLINGS, ScanRays, select_rays
 from rangemcl.localization.spread import DrivableArea, drivable_cells
@@ -69,6 +71,14 @@ class MotionSettings:
     rot_per_trans: float = 0.005
     trans_per_trans: float = 0.05
     trans_per_rot: float = 0.05
+    odometry_scale: float = 1.0  # the odometry's translation scale as known (the calibration starts here)
+    gyro_bias_deg_s: float = 0.0  # the gyro's yaw-rate bias as known (subtracted; the calibration's start)
+    calibrate_scale: bool = True  # estimate the scale online (rangemcl.localization.calibration) ...
+    calibrate_gyro_bias: bool = True  # ... and the gyro's bias
+    calibration_window_m: float = 100.0  # the scale estimate's memory (metres driven)
+    calibration_window_s: float = 120.0  # the bias estimate's memory (seconds)
+    calibration_prior_m: float = 10.0  # weight of the configured scale, as metres of evidence
+    calibration_prior_s: float = 10.0  # weight of the configured bias, as seconds of evidence
 
 
 @dataclass
@@ -153,6 +163,19 @@ class RecoverySettings:
 
 
 @dataclass
+class RefineSettings:
+    enabled: bool = True  # align each converged update's rays to the mesh (rangemcl.localization.refine)
+    iterations: int = 5  # Gauss-Newton steps, each re-casting the rays
+    max_residual_m: float = 0.5  # a ray takes part when its range is within this of the map's surface
+    huber_m: float = 0.1  # Huber threshold of the point-to-plane residual
+    min_inliers: int = 30  # fewer rays taking part: no refinement
+    min_information: float = 10.0  # directions the scan constrains less than this are left alone
+    lever_m: float = 10.0  # yaw compared with translation at this distance
+    gate_m: float = 0.3  # a correction is taken when within this + 2 x the cloud's spread (x, y) ...
+    gate_deg: float = 1.0  # ... and this + 2 x the cloud's yaw spread; else refused and counted
+
+
+@dataclass
 class InitSettings:
     drive_radius_m: float = 6.0  # with a map that keeps its mapping drive: spread within this of it
     heading_sigma_deg: float = 15.0  # ... with yaw along the drive (either way) within this
@@ -175,6 +198,7 @@ class LocalizerSettings:
     observation: ObservationSettings = field(default_factory=ObservationSettings)
     convergence: ConvergenceSettings = field(default_factory=ConvergenceSettings)
     recovery: RecoverySettings = field(default_factory=RecoverySettings)
+    refine: RefineSettings = field(default_factory=RefineSettings)
     init: InitSettings = field(default_factory=InitSettings)
     sensor_height_m: float | None = None  # mounting height; default: the sequence's sensor, else the map's
 
@@ -209,6 +233,14 @@ class LocalizerSettings:
             "init.prior_top": self.init.prior_top,
             "init.prior_cell_m": self.init.prior_cell_m,
             "init.inject_top": self.init.inject_top,
+            "motion.odometry_scale": m.odometry_scale,
+            "motion.calibration_window_m": m.calibration_window_m,
+            "motion.calibration_window_s": m.calibration_window_s,
+            "refine.iterations": self.refine.iterations,
+            "refine.max_residual_m": self.refine.max_residual_m,
+            "refine.huber_m": self.refine.huber_m,
+            "refine.min_inliers": self.refine.min_inliers,
+            "refine.lever_m": self.refine.lever_m,
         }
         for key in (
             "overlap_tau_m",
@@ -260,10 +292,17 @@ class LocalizerSettings:
             "recovery.opinion_inlier_gain": r.opinion_inlier_gain,
             "recovery.probation_updates": r.probation_updates,
             "init.prior_yaw_sigma_deg": self.init.prior_yaw_sigma_deg,
+            "motion.calibration_prior_m": m.calibration_prior_m,
+            "motion.calibration_prior_s": m.calibration_prior_s,
+            "refine.min_information": self.refine.min_information,
+            "refine.gate_m": self.refine.gate_m,
+            "refine.gate_deg": self.refine.gate_deg,
         }
         for key, value in non_negative.items():
             if not (math.isfinite(value) and value >= 0):
                 raise InputError(f"{where}: {key} must be >= 0, got {value}")
+        if not math.isfinite(m.gyro_bias_deg_s):
+            raise InputError(f"{where}: motion.gyro_bias_deg_s must be finite, got {m.gyro_bias_deg_s}")
         for key in ("prior_share", "inject_share", "inject_below_share"):
             if not 0 <= getattr(self.init, key) <= 1:
                 raise InputError(f"{where}: init.{key} must be in [0, 1], got {getattr(self.init, key)}")
@@ -411,10 +450,38 @@ def build_localizer(
             opinion_hits=r.opinion_hits,
             consistent_m=c.separation_m,
         )
+    calibrator = OdometryCalibrator(
+        m.odometry_scale,
+        math.radians(m.gyro_bias_deg_s),
+        estimate_scale=m.calibrate_scale,
+        estimate_bias=m.calibrate_gyro_bias,
+        window_m=m.calibration_window_m,
+        window_s=m.calibration_window_s,
+        prior_m=m.calibration_prior_m,
+        prior_s=m.calibration_prior_s,
+    )
+    f = s.refine
+    refiner = (
+        ScanRefiner(
+            caster,
+            iterations=f.iterations,
+            max_residual_m=f.max_residual_m,
+            huber_m=f.huber_m,
+            min_inliers=f.min_inliers,
+            min_information=f.min_information,
+            lever_m=f.lever_m,
+        )
+        if f.enabled
+        else None
+    )
     return MonteCarloLocalizer(
         mesh_map,
         scorer,
         caster=caster,
+        refiner=refiner,
+        calibrator=calibrator,
+        refine_gate_m=f.gate_m,
+        refine_gate_deg=f.gate_deg,
         residual_model=residual_model,
         select_rays=ray_selector(o),
         area=drivable_cells(mesh_map, i.drive_radius_m),

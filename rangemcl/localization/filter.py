@@ -13,7 +13,12 @@ LiDAR frame (:class:`MonteCarloLocalizer`).
    and convergence is declared when one has won (:mod:`rangemcl.localization.hypotheses`), or, with
    ``convergence="tiles"``, the paper's rule (all particles in ``tiles`` tiles); then ``converged_count``
    particles are kept.
-4. **Lost**: a converged filter watches its evidence and asks the place prior for a second opinion
+4. **Refine and calibrate** (a converged filter): the update's rays are aligned to the mesh
+   (:mod:`rangemcl.localization.refine`) and the cloud moved by the correction when it lies within the
+   cloud's own spread (else refused and counted); the odometry's scale and the gyro's bias are estimated
+   from the estimate's motion against the raw odometry's (:mod:`rangemcl.localization.calibration`) and
+   applied to every later prediction.
+5. **Lost**: a converged filter watches its evidence and asks the place prior for a second opinion
    (:mod:`rangemcl.localization.lost`); when lost, it spreads again and relocalizes.
 
 The constructor takes plain values and the parts it composes (observation model, ray selection, drivable
@@ -31,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rangemcl.errors import InputError
+from rangemcl.localization.calibration import OdometryCalibrator
 from rangemcl.localization.hypotheses import (
     ConvergenceTest,
     cluster_labels,
@@ -41,6 +47,7 @@ from rangemcl.localization.hypotheses import (
 )
 from rangemcl.localization.lost import LostDetector, Opinion, candidate_particles, second_opinion
 from rangemcl.localization.place_prior import PlacePrior, PriorParams, load_or_build
+from rangemcl.localization.refine import ScanRefiner
 from rangemcl.localization.scan_prep import ScanRays
 from rangemcl.localization.spread import DrivableArea, uniform_particles
 from rangemcl.particles import (
@@ -73,6 +80,10 @@ class StepInfo:
     inliers: float = math.nan  # the best particle's inlier share (models that report it)
     converged_now: bool = False  # convergence was declared at this update
     vetoed: bool = False  # a lost suspicion at this update was vetoed by the second opinion
+    refined: int = 0  # scan-to-mesh refinement at this update: 1 taken, -1 refused, 0 not tried
+    refine_shift_m: float = math.nan  # the refinement's correction (x, y), taken or refused
+    odometry_scale: float = math.nan  # the calibration's current translation scale ...
+    gyro_bias_deg_s: float = math.nan  # ... and gyro bias
 
 
 class MonteCarloLocalizer:
@@ -88,6 +99,9 @@ class MonteCarloLocalizer:
         area: where global localization spreads (:func:`rangemcl.localization.spread.drivable_cells`).
         noise: the odometry motion model's noise.
         lost: the lost detector; None: never lost (the paper's filter).
+        refiner: scan-to-mesh refinement of a converged filter's pose; None: none (the paper's filter).
+        calibrator: the odometry's calibration (applied to every increment; estimated online where it
+            is set to); None: the odometry as it comes.
         rng: the run's generator.
         sensor_height_m: the sensor's height above the ground.
         The keyword values: see :class:`rangemcl.mcl.LocalizerSettings`, which documents each.
@@ -105,6 +119,10 @@ class MonteCarloLocalizer:
         noise: MotionNoise,
         lost: LostDetector | None,
         rng: np.random.Generator,
+        refiner: ScanRefiner | None = None,
+        calibrator: OdometryCalibrator | None = None,
+        refine_gate_m: float = 0.3,
+        refine_gate_deg: float = 1.0,
         sensor_height_m: float = 1.73,
         # motion and scan
         update_distance_m: float = 0.2,
@@ -162,6 +180,9 @@ class MonteCarloLocalizer:
         self.noise = noise
         self.lost = lost
         self.rng = rng
+        self.refiner = refiner
+        self.calibrator = calibrator
+        self.refine_gate = (float(refine_gate_m), math.radians(refine_gate_deg))
         self.sensor_height_m = float(sensor_height_m)
         self.update_distance_m = float(update_distance_m)
         self.update_angle = math.radians(update_angle_deg)
@@ -216,6 +237,11 @@ class MonteCarloLocalizer:
         self._moved_m = 0.0
         self._motion = np.zeros(3)
         self.hypotheses: list = []  # the search's clusters at the last update, largest share first
+        self.refinements = 0  # refinements taken ...
+        self.refused_refinements = 0  # ... and refused (outside the cloud's spread)
+        self._calib_ref: np.ndarray | None = None  # estimate at the last converged update
+        self._raw_since_ref = np.zeros(3)  # raw odometry since then (in that pose) ...
+        self._dt_since_ref = 0.0  # ... and the time it took (NaN: a frame without a time)
 
     @property
     def vetoed_alarms(self) -> int:
@@ -297,6 +323,9 @@ class MonteCarloLocalizer:
         if self.lost is not None:
             self.lost.reset()
         self._leader = None
+        self._calib_ref = None
+        self._raw_since_ref = np.zeros(3)
+        self._dt_since_ref = 0.0
         self.last_estimate = pose_estimate(self.particles, self.weights, self.estimate_best_share)
 
     @property
@@ -317,16 +346,21 @@ class MonteCarloLocalizer:
         fire_time_s: np.ndarray | None = None,
         frame_period_s: float | None = None,
         roll_pitch: tuple[float, float] | None = None,
+        dt_s: float | None = None,
     ) -> StepInfo:
         """One LiDAR frame: ``odometry_delta`` ``(dx, dy, dyaw)`` is the car's motion since the previous
-        frame in the previous frame's pose; ``points`` the scan ``(M, 3)`` in the sensor frame (None or
-        empty: predict only)."""
+        frame in the previous frame's pose, over ``dt_s`` seconds (needed to calibrate the gyro's bias);
+        ``points`` the scan ``(M, 3)`` in the sensor frame (None or empty: predict only)."""
         if len(self.particles) == 0:
             raise InputError("the filter has no particles: call spread() or start_at() first")
         t0 = time.perf_counter()
         delta = np.asarray(odometry_delta, np.float64).reshape(3)
         if not np.isfinite(delta).all():
             raise InputError(f"odometry increment must be finite, got {delta}")
+        self._raw_since_ref = se2_compose(self._raw_since_ref, delta)
+        self._dt_since_ref += dt_s if dt_s is not None else math.nan
+        if self.calibrator is not None:
+            delta = self.calibrator.correct(delta, dt_s)
         self.pending = se2_compose(self.pending, delta)
         due = (
             math.hypot(self.pending[0], self.pending[1]) >= self.update_distance_m
@@ -362,6 +396,14 @@ class MonteCarloLocalizer:
                 if self._prior_pending and levelled is not None:
                     self._draw_initial_prior(levelled)
                 info.update(self._weigh(rays, levelled, level))
+                if self.converged and self.refiner is not None and not info["recovered"]:
+                    info.update(self._refine(rays))
+                self._calibrate(info)
+        if self.calibrator is not None:
+            info.update(
+                odometry_scale=self.calibrator.scale,
+                gyro_bias_deg_s=math.degrees(self.calibrator.gyro_bias),
+            )
         w = self.weights
         return StepInfo(
             estimate=self.estimate(),
@@ -371,6 +413,45 @@ class MonteCarloLocalizer:
             seconds=time.perf_counter() - t0,
             **info,
         )
+
+    def _refine(self, rays: ScanRays) -> dict:
+        """Align the update's rays to the mesh from the estimate (:mod:`rangemcl.localization.refine`);
+        take the correction (the whole cloud moves by it) when it lies within the cloud's own spread."""
+        est = self.last_estimate
+        ref = self.refiner.refine(rays.directions, rays.ranges, est, float(self.sensor_z(est[None, :2])[0]))
+        if ref is None:
+            return {}
+        w = self.weights
+        spread_xy = math.sqrt(
+            float(np.sum(w * ((self.particles[:, 0] - est[0]) ** 2 + (self.particles[:, 1] - est[1]) ** 2)))
+        )
+        spread_yaw = math.sqrt(float(np.sum(w * wrap_angle(self.particles[:, 2] - est[2]) ** 2)))
+        shift = math.hypot(ref.correction[0], ref.correction[1])
+        if (
+            shift > self.refine_gate[0] + 2.0 * spread_xy
+            or abs(ref.correction[2]) > self.refine_gate[1] + 2.0 * spread_yaw
+        ):
+            self.refused_refinements += 1
+            return dict(refined=-1, refine_shift_m=shift)
+        self.particles = self.particles + ref.correction
+        self.particles[:, 2] = wrap_angle(self.particles[:, 2])
+        self.last_estimate = ref.pose.copy()
+        self.refinements += 1
+        return dict(refined=1, refine_shift_m=shift)
+
+    def _calibrate(self, info: dict) -> None:
+        """After a weighted update: the interval since the last converged update feeds the odometry's
+        calibration (:mod:`rangemcl.localization.calibration`); a search, a recovery or a convergence
+        starts a new interval instead."""
+        if self.calibrator is None:
+            return
+        steady = self.converged and not info.get("recovered") and not info.get("converged_now")
+        if steady and self._calib_ref is not None:
+            dt = self._dt_since_ref if math.isfinite(self._dt_since_ref) else None
+            self.calibrator.observe(self._raw_since_ref, dt, self._calib_ref, self.last_estimate)
+        self._calib_ref = self.last_estimate.copy() if self.converged and not info.get("recovered") else None
+        self._raw_since_ref = np.zeros(3)
+        self._dt_since_ref = 0.0
 
     def _needs_prior(self) -> bool:
         return self.use_prior and not self.converged
