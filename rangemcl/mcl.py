@@ -76,9 +76,9 @@ class MotionSettings:
     calibrate_scale: bool = True  # estimate the scale online (rangemcl.localization.calibration) ...
     calibrate_gyro_bias: bool = True  # ... and the gyro's bias
     calibration_window_m: float = 100.0  # the scale estimate's memory (metres driven)
-    calibration_window_s: float = 120.0  # the bias estimate's memory (seconds)
+    calibration_window_s: float = 300.0  # the bias estimate's memory (seconds)
     calibration_prior_m: float = 10.0  # weight of the configured scale, as metres of evidence
-    calibration_prior_s: float = 10.0  # weight of the configured bias, as seconds of evidence
+    calibration_prior_s: float = 1.0  # weight of the configured bias, as seconds of evidence
 
 
 @dataclass

@@ -77,9 +77,10 @@ class Trial:
 
 
 # in every trial key: the localizer's defaults changed (issue 13: place prior, hypotheses, change-robust
-# observation; revision 3: the second opinion on lost alarms; 4: ... confirmed at two updates),
-# so trials of earlier revisions (keys without "-v4") are never taken for today's
-LOCALIZER_REVISION = 4
+# observation; revision 3: the second opinion on lost alarms; 4: ... confirmed at two updates; 5: issue
+# 19's scan-to-mesh refinement and online odometry calibration), so trials of earlier revisions (keys
+# without "-v5") are never taken for today's
+LOCALIZER_REVISION = 5
 
 DRIVE_FIELDS = ("scene", "sensor", "route", "variant", "actors", "drive_seed", "drive_frames")
 

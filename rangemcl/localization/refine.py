@@ -42,7 +42,7 @@ class Refinement:
     rms_m: float  # their point-to-plane RMS residual at the refined pose
     cost: float  # mean Huber cost over all rays given (a ray taking no part costs as at max_residual_m)
     start_cost: float  # ... at the start pose
-    constrained: int  # directions (0..3) the scan constrained at the step that led here
+    constrained: int  # directions (0..3) the scan constrains at the returned pose
     iterations: int  # Gauss-Newton steps that led to the returned pose (the best one visited)
 
 
@@ -122,7 +122,6 @@ class ScanRefiner:
         x = start.copy()
         start_cost = math.nan
         best = None  # (cost, pose, residuals, constrained, iteration): the best pose visited
-        constrained = 0
         for it in range(1, self.iterations + 2):
             e, jac, w = self._linearize(directions, ranges, x, sensor_z)
             if len(e) < self.min_inliers:
@@ -130,16 +129,14 @@ class ScanRefiner:
             cost = self._cost(e, len(ranges))
             if it == 1:
                 start_cost = cost
-            if best is None or cost < best[0]:
-                best = (cost, x.copy(), e, constrained, it - 1)
-            if it > self.iterations:
-                break
             h = jac.T @ (w[:, None] * jac)
             g = jac.T @ (w * e)
             vals, vecs = np.linalg.eigh(h)
             keep = vals >= self.min_information
             constrained = int(keep.sum())
-            if constrained == 0:
+            if best is None or cost < best[0]:
+                best = (cost, x.copy(), e, constrained, it - 1)
+            if it > self.iterations or constrained == 0:
                 break
             step = -(vecs[:, keep] @ ((vecs[:, keep].T @ g) / vals[keep]))
             step[2] /= self.lever_m

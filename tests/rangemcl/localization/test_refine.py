@@ -1,0 +1,127 @@
+"""Scan-to-mesh refinement (issue 19): a known offset of a scan against a synthetic mesh is recovered to a
+centimetre; a corridor's axis, which its walls do not constrain, is left alone; through the filter, a
+refinement that pulls towards a place outside the particle cloud is refused and counted."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from rangemcl import meshgen
+from rangemcl.localization.refine import ScanRefiner
+from rangemcl.mapping.meshmap import MeshMap
+from rangemcl.mcl import LocalizerSettings, ObservationSettings, build_localizer
+from rangemcl.rangeimage import RangeImageGeometry
+from rangemcl.raycast import RayCaster
+from rangemcl.se2 import se2_compose, se2_inverse
+from rangemcl.sensors import load_spec
+
+HEIGHT = 1.73
+
+
+def _world(parts):
+    v, f = meshgen.merge(parts)
+    caster = RayCaster(threads=2)
+    caster.add_mesh(v, f, name="world")
+    return caster, v, f
+
+
+@pytest.fixture(scope="module")
+def yard():
+    """Ground and irregular blocks at several orientations around the origin."""
+    rng = np.random.default_rng(11)
+    parts = [meshgen.grid_patch((-50.0, -50.0, 0.0), (100.0, 0, 0), (0, 100.0, 0), 25, 25)]
+    for _ in range(14):
+        r, a = rng.uniform(8.0, 30.0), rng.uniform(0, 2 * math.pi)
+        size = (rng.uniform(2, 8), rng.uniform(2, 8), rng.uniform(3, 8))
+        v, f = meshgen.box(size, (0.0, 0.0, size[2] / 2), cell_m=2.0)
+        yaw = rng.uniform(0, math.pi)
+        c, s = math.cos(yaw), math.sin(yaw)
+        v = v @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1.0]]) + [r * math.cos(a), r * math.sin(a), 0.0]
+        parts.append((v, f))
+    return _world(parts)
+
+
+def _rays(caster, pose, spec="vlp-16", columns=720, count=600, seed=0):
+    """Unit directions (sensor frame) and measured ranges of a noiseless scan taken at ``pose``."""
+    geo = RangeImageGeometry.for_spec(load_spec(spec).with_columns(columns))
+    d = geo.directions.reshape(-1, 3).astype(np.float64)
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    hits = caster.cast(np.array([pose[0], pose[1], HEIGHT]), d @ R.T, 40.0)
+    ok = np.flatnonzero(hits.hit & (hits.ranges > 2.0))
+    pick = np.random.default_rng(seed).choice(ok, min(count, len(ok)), replace=False)
+    return d[pick], hits.ranges[pick].astype(np.float64)
+
+
+@pytest.mark.parametrize("offset", [(0.3, -0.2, 1.5), (-0.15, 0.25, -1.0), (0.0, 0.0, 0.0)])
+def test_a_known_offset_is_recovered_to_a_centimetre(yard, offset):
+    caster = yard[0]
+    truth = np.array([1.0, -2.0, 0.4])
+    d, r = _rays(caster, truth)
+    start = truth + np.array([offset[0], offset[1], math.radians(offset[2])])
+    ref = ScanRefiner(caster).refine(d, r, start, HEIGHT)
+    assert ref is not None and ref.constrained == 3
+    assert math.hypot(*(ref.pose[:2] - truth[:2])) < 0.01
+    assert abs(math.degrees(ref.pose[2] - truth[2])) < 0.05
+    assert ref.cost <= ref.start_cost
+    assert ref.correction == pytest.approx(ref.pose - start)
+
+
+def test_a_corridor_axis_is_left_alone():
+    caster, _v, _f = _world(
+        [
+            meshgen.grid_patch((-60.0, -10.0, 0.0), (120.0, 0, 0), (0, 20.0, 0), 30, 5),
+            meshgen.box((120.0, 0.5, 4.0), (0.0, -5.0, 2.0), cell_m=4.0),
+            meshgen.box((120.0, 0.5, 4.0), (0.0, 5.0, 2.0), cell_m=4.0),
+        ]
+    )
+    d, r = _rays(caster, np.zeros(3))
+    ref = ScanRefiner(caster).refine(d, r, np.array([0.4, 0.3, math.radians(1.0)]), HEIGHT)
+    assert ref is not None and ref.constrained == 2
+    assert ref.pose[0] == pytest.approx(0.4, abs=1e-3)  # along the walls: nothing to go by
+    assert abs(ref.pose[1]) < 0.01 and abs(math.degrees(ref.pose[2])) < 0.05
+
+
+def test_too_few_rays_on_the_map_give_no_refinement(yard):
+    caster = yard[0]
+    d, r = _rays(caster, np.zeros(3), count=20)
+    assert ScanRefiner(caster, min_inliers=30).refine(d, r, np.zeros(3), HEIGHT) is None
+
+
+def test_the_filter_refuses_a_refinement_outside_its_cloud(yard):
+    """A tight cloud 0.5 m off the true pose: the refinement finds the truth but the correction lies far
+    outside the cloud's spread, so the filter refuses it (counted) and keeps its own estimate; with a
+    cloud as spread as the correction, the same refinement is taken."""
+    caster, v, f = yard
+    m = MeshMap.from_mesh(v, f, tile_size_m=50.0, meta={"sensor_height_m": HEIGHT})
+    geo = RangeImageGeometry.for_spec(load_spec("vlp-16").with_columns(720))
+    truth = np.array([1.0, -2.0, 0.4])
+    dirs = geo.directions.reshape(-1, 3)
+    c, s = math.cos(truth[2]), math.sin(truth[2])
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    hits = caster.cast(np.array([truth[0], truth[1], HEIGHT]), dirs @ R.T, 40.0)
+    scan = (dirs[hits.hit] * hits.ranges[hits.hit, None]).astype(np.float32)
+    wrong = truth + np.array([0.0, 0.5, 0.0])
+    motion = np.array([0.3, 0.0, 0.0])  # an update is due after 0.2 m
+    start = se2_compose(wrong, se2_inverse(motion))  # the filter predicts ``wrong``
+
+    def first_update(sigma_m):
+        st = LocalizerSettings()
+        st.observation = ObservationSettings(rays=400, max_range_m=40.0)
+        st.particles.tracking_sigma_xy_m = sigma_m
+        st.particles.tracking_sigma_yaw_deg = 0.1
+        st.refine.max_residual_m = 1.0  # reach the truth from 0.5 m
+        st.recovery.enabled = False
+        loc = build_localizer(m, st, seed=1, caster=caster)
+        loc.start_at(start)
+        return loc, loc.step(motion, scan)
+
+    loc, info = first_update(0.01)
+    assert info.updated and info.refined == -1 and loc.refused_refinements == 1 and loc.refinements == 0
+    assert info.refine_shift_m > 0.4
+    assert math.hypot(*(info.estimate[:2] - wrong[:2])) < 0.1  # kept its own estimate
+    loc, info = first_update(0.5)
+    assert info.refined == 1 and loc.refinements == 1
