@@ -279,6 +279,8 @@ def run_trial(
         )
     m = json.loads((out / "metrics.json").read_text())
     success = bool(m["success"]) and (not trial.kidnap or s["recoveries"] >= 1)
+    odo = load_sequence(drive).meta.get("odometry") or {}  # the drive's drawn odometry errors
+    cal = s.get("odometry_calibration") or {}
     conv = s["converged_frame"]
     row = {
         **asdict(trial),
@@ -300,6 +302,12 @@ def run_trial(
         "seconds_per_frame_before": s["seconds_per_frame_before_convergence_median"],
         "hz_after": s["hz_after_convergence"],
         "seconds": time.perf_counter() - t0,
+        # the drive's odometry: its distance is wheel_scale x the true one, its gyro starts this biased
+        "odometry_wheel_scale": odo.get("wheel_scale"),
+        "odometry_gyro_bias_deg_s": odo.get("gyro_bias_initial_deg_s"),
+        # ... and the filter's calibration at the trial's end (the scale it multiplies the odometry by)
+        "calibrated_scale": cal.get("scale"),
+        "calibrated_gyro_bias_deg_s": cal.get("gyro_bias_deg_s"),
     }
     return row
 
@@ -328,6 +336,10 @@ ROW_FIELDS = [f.name for f in fields(Trial) if f.name != "settings"] + [
     "seconds_per_frame_before",
     "hz_after",
     "seconds",
+    "odometry_wheel_scale",
+    "odometry_gyro_bias_deg_s",
+    "calibrated_scale",
+    "calibrated_gyro_bias_deg_s",
 ]
 
 
@@ -477,6 +489,12 @@ def _total(rows: list[dict], col: str) -> int | None:
     return int(np.sum(vals)) if vals else None
 
 
+def _median_of(rows: list[dict], value) -> float | None:
+    """Median of ``value(row)`` over the rows where it is a number (None when none)."""
+    vals = [v for v in (value(r) for r in rows) if v == v]
+    return float(np.median(vals)) if vals else None
+
+
 def aggregate(rows: list[dict], by: list[str]) -> list[dict]:
     """Per group: trials, successes, RMSE over the successful trials' frames after convergence, medians."""
     groups: dict[tuple, list[dict]] = {}
@@ -532,6 +550,17 @@ def aggregate(rows: list[dict], by: list[str]) -> list[dict]:
                 "hz_after_median": float(np.median(hz)) if hz else None,
                 "seconds_before_median": float(np.median(before)) if before else None,
                 "relocalized_after_frames_median": float(np.median(reloc)) if reloc else None,
+                # the odometry the trials ran with: distance error in per cent (median over the trials),
+                # and what is left of it after the filter's calibration (median of its absolute value)
+                "odometry_error_pct": _median_of(
+                    rs, lambda r: 100.0 * (_num(r.get("odometry_wheel_scale")) - 1)
+                ),
+                "calibrated_error_pct": _median_of(
+                    rs,
+                    lambda r: (
+                        100.0 * abs(_num(r.get("odometry_wheel_scale")) * _num(r.get("calibrated_scale")) - 1)
+                    ),
+                ),
             }
         )
     return out
@@ -575,7 +604,11 @@ def write_report(suite: str, rows: list[dict], out: Path) -> tuple[Path, Path]:
         "after a 'lost' alarm and not converged again) and converged_failed (its last convergence more than "
         "5 m off then or at a later check). wrong_convergences: convergence declared while more than 5 m off "
         "(counted even when caught), wrong_uncaught: of those, not undone by a re-spread within 10 frames; "
-        "false_alarms: 'lost' declared while the estimate was within 2 m.",
+        "false_alarms: 'lost' declared while the estimate was within 2 m. odometry_error_pct: the test "
+        "drive's odometry distance error (its drawn wheel scale - 1, per cent, median over the trials); "
+        "calibrated_error_pct: what is left of it after the filter's online calibration at the trial's end "
+        "(median of the absolute values; the odometry's own error where the calibration is off; – for rows "
+        "of earlier revisions).",
         "",
     ]
     cols = [*by, "trials", "successes", "location_rmse_m", "yaw_rmse_deg", "frames_to_converge_median"]
@@ -591,6 +624,10 @@ def write_report(suite: str, rows: list[dict], out: Path) -> tuple[Path, Path]:
         ]
     if suite == "models":
         cols += ["location_rmse_mean_m", "location_rmse_std_m", "yaw_rmse_mean_deg", "yaw_rmse_std_deg"]
+    if suite in ("sensors", "particles", "models", "kidnap") and any(
+        a["odometry_error_pct"] is not None for a in agg
+    ):
+        cols += ["odometry_error_pct", "calibrated_error_pct"]
     if suite == "sensors":
         cols += ["paper_location_rmse_m", "paper_yaw_rmse_deg"]
         for a in agg:
