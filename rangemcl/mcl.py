@@ -77,8 +77,9 @@ class MotionSettings:
     calibrate_gyro_bias: bool = True  # ... and the gyro's bias
     calibration_window_m: float = 100.0  # the scale estimate's memory (metres driven)
     calibration_window_s: float = 300.0  # the bias estimate's memory (seconds)
-    calibration_prior_m: float = 10.0  # weight of the configured scale, as metres of evidence
-    calibration_prior_s: float = 1.0  # weight of the configured bias, as seconds of evidence
+    calibration_prior_m: float = 3.0  # weight of the configured scale, as metres of evidence
+    calibration_prior_s: float = 0.3  # weight of the configured bias, as seconds of evidence
+    calibration_settle_updates: int = 10  # updates after a convergence left out (the cloud settles)
 
 
 @dataclass
@@ -294,6 +295,7 @@ class LocalizerSettings:
             "init.prior_yaw_sigma_deg": self.init.prior_yaw_sigma_deg,
             "motion.calibration_prior_m": m.calibration_prior_m,
             "motion.calibration_prior_s": m.calibration_prior_s,
+            "motion.calibration_settle_updates": m.calibration_settle_updates,
             "refine.min_information": self.refine.min_information,
             "refine.gate_m": self.refine.gate_m,
             "refine.gate_deg": self.refine.gate_deg,
@@ -482,6 +484,7 @@ def build_localizer(
         calibrator=calibrator,
         refine_gate_m=f.gate_m,
         refine_gate_deg=f.gate_deg,
+        calibration_settle_updates=m.calibration_settle_updates,
         residual_model=residual_model,
         select_rays=ray_selector(o),
         area=drivable_cells(mesh_map, i.drive_radius_m),

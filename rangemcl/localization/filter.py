@@ -123,6 +123,7 @@ class MonteCarloLocalizer:
         calibrator: OdometryCalibrator | None = None,
         refine_gate_m: float = 0.3,
         refine_gate_deg: float = 1.0,
+        calibration_settle_updates: int = 10,
         sensor_height_m: float = 1.73,
         # motion and scan
         update_distance_m: float = 0.2,
@@ -183,6 +184,7 @@ class MonteCarloLocalizer:
         self.refiner = refiner
         self.calibrator = calibrator
         self.refine_gate = (float(refine_gate_m), math.radians(refine_gate_deg))
+        self.calibration_settle_updates = int(calibration_settle_updates)
         self.sensor_height_m = float(sensor_height_m)
         self.update_distance_m = float(update_distance_m)
         self.update_angle = math.radians(update_angle_deg)
@@ -240,6 +242,7 @@ class MonteCarloLocalizer:
         self.refinements = 0  # refinements taken ...
         self.refused_refinements = 0  # ... and refused (outside the cloud's spread)
         self._calib_ref: np.ndarray | None = None  # estimate at the last converged update
+        self._settled = 0  # updates since the last convergence (or tracking start)
         self._raw_since_ref = np.zeros(3)  # raw odometry since then (in that pose) ...
         self._dt_since_ref = 0.0  # ... and the time it took (NaN: a frame without a time)
 
@@ -442,11 +445,13 @@ class MonteCarloLocalizer:
     def _calibrate(self, info: dict) -> None:
         """After a weighted update: the interval since the last converged update feeds the odometry's
         calibration (:mod:`rangemcl.localization.calibration`); a search, a recovery or a convergence
-        starts a new interval instead."""
+        starts a new interval instead, and the first ``calibration_settle_updates`` after a convergence
+        (while the cloud settles on its place) are left out."""
         if self.calibrator is None:
             return
         steady = self.converged and not info.get("recovered") and not info.get("converged_now")
-        if steady and self._calib_ref is not None:
+        self._settled = self._settled + 1 if steady else 0
+        if steady and self._calib_ref is not None and self._settled > self.calibration_settle_updates:
             dt = self._dt_since_ref if math.isfinite(self._dt_since_ref) else None
             self.calibrator.observe(self._raw_since_ref, dt, self._calib_ref, self.last_estimate)
         self._calib_ref = self.last_estimate.copy() if self.converged and not info.get("recovered") else None
