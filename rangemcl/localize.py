@@ -4,11 +4,12 @@ A results folder holds::
 
     config.yaml          the effective localizer settings (give it back with --config)
     frames.csv           one line per frame, appended as the run goes (frame, time, estimate, particle
-                         count, convergence, update/resampling/recovery flags, residual, seconds)
+                         count, convergence, update/resampling/recovery flags, residual, seconds, search
+                         and lost-detection signals, refinement, odometry calibration)
     estimate_kitti.txt   the estimated poses, 12 numbers per line, in the convention of the sequence's
                          poses.txt (so ``evo_ape kitti poses.txt estimate_kitti.txt`` compares them)
     estimate_tum.txt     the estimated LiDAR poses as TUM lines (time x y z qx qy qz qw)
-    summary.json         convergence frame, counts, timings, odometry source, device, seed
+    summary.json         convergence frame, counts, timings, odometry source and calibration, device, seed
     metrics.json         the paper's metrics (:mod:`rangemcl.evaluate`) when the sequence has poses
     particles.npz        particle clouds at a few frames
     trajectory.png, error.png, particles.png
