@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+import threading
 from collections.abc import Callable
 from pathlib import Path
 from typing import BinaryIO
@@ -11,16 +12,30 @@ from typing import BinaryIO
 from rangemcl.errors import InputError
 
 
+_UMASK_LOCK = threading.Lock()
+
+
+def _file_mode() -> int:
+    """The mode a plain ``open()`` would give a new file: 0o666 less the process's umask (``mkstemp``
+    gives 0o600 whatever the umask, which leaves a map or recording copied to a colleague unreadable)."""
+    with _UMASK_LOCK:
+        mask = os.umask(0o022)
+        os.umask(mask)
+    return 0o666 & ~mask
+
+
 def atomic_write(path: str | os.PathLike, data: bytes | str | Callable[[BinaryIO], None]) -> Path:
     """Write ``data`` (bytes, text, or a function that writes to a binary file) to ``path`` atomically.
 
     A reader sees the old file or the whole new one, never a part; the data is on disk before the rename.
-    A folder that does not exist or cannot be written is an ``InputError`` naming the path.
+    The file gets the umask's mode, as one written with ``open()``. A folder that does not exist or cannot
+    be written is an ``InputError`` naming the path.
     """
     path = Path(path)
     tmp = None
     try:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        os.fchmod(fd, _file_mode())
         with os.fdopen(fd, "wb") as f:
             if callable(data):
                 data(f)
