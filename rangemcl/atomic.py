@@ -11,7 +11,6 @@ from typing import BinaryIO
 
 from rangemcl.errors import InputError
 
-
 _UMASK_LOCK = threading.Lock()
 
 
@@ -51,3 +50,22 @@ def atomic_write(path: str | os.PathLike, data: bytes | str | Callable[[BinaryIO
         if tmp is not None:
             Path(tmp).unlink(missing_ok=True)
     return path
+
+
+def savez_stable(fh: BinaryIO, *, compressed: bool = False, **arrays) -> None:
+    """``np.savez`` (or ``savez_compressed``) whose bytes depend only on the arrays: every member gets
+    the same fixed zip timestamp, so the same inputs give the same file (``np.load`` reads it as usual)."""
+    import io
+    import zipfile
+
+    import numpy as np
+
+    method = zipfile.ZIP_DEFLATED if compressed else zipfile.ZIP_STORED
+    with zipfile.ZipFile(fh, "w", compression=method, allowZip64=True) as zf:
+        for name, value in arrays.items():
+            buf = io.BytesIO()
+            np.lib.format.write_array(buf, np.asanyarray(value), allow_pickle=False)
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = method
+            info.external_attr = 0o644 << 16
+            zf.writestr(info, buf.getvalue())

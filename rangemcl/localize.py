@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rangemcl.atomic import atomic_write
+from rangemcl.atomic import atomic_write, savez_stable
 from rangemcl.config import write_config
 from rangemcl.dataset import Sequence, load_sequence, poses_to_tum, write_poses_txt
 from rangemcl.errors import InputError
@@ -282,7 +282,7 @@ class LocalizationPipeline:
             )
             atomic_write(self.out_dir / "estimate_tum.txt", "\n".join(poses_to_tum(poses, times)) + "\n")
         if self.snapshots:
-            atomic_write(self.out_dir / "particles.npz", lambda fh: np.savez(fh, **self.snapshots))
+            atomic_write(self.out_dir / "particles.npz", lambda fh: savez_stable(fh, **self.snapshots))
 
     def evaluate(self) -> None:
         if self.truth is None or not self.log.done:

@@ -224,15 +224,19 @@ class PlacePrior:
     # --- files -------------------------------------------------------------------------------------------
 
     def save(self, path: Path, key: str) -> None:
-        from rangemcl.atomic import atomic_write
+        from rangemcl.atomic import atomic_write, savez_stable
 
         meta = json.dumps(
             {"version": PRIOR_VERSION, "key": key, "params": asdict(self.params), "build_s": self.build_s}
         )
         atomic_write(
             Path(path),
-            lambda fh: np.savez_compressed(
-                fh, xy=self.xy.astype(np.float32), profiles=self.profiles, meta=np.array(meta)
+            lambda fh: savez_stable(
+                fh,
+                compressed=True,
+                xy=self.xy.astype(np.float32),
+                profiles=self.profiles,
+                meta=np.array(meta),
             ),
         )
 

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rangemcl.atomic import atomic_write
+from rangemcl.atomic import atomic_write, savez_stable
 from rangemcl.errors import InputError
 from rangemcl.mapping.meshmap import (
     GROUND_RGB,
@@ -60,6 +60,13 @@ def _load_tile(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if not np.isfinite(v).all():
         raise InputError(f"{path}: tile mesh has NaN or infinite vertices")
     return v, f, g
+
+
+def _member(name: str):
+    """A zip member with a fixed timestamp (``zipfile`` stamps members with the current time)."""
+    info = zipfile.ZipInfo(name, date_time=(1980, 1, 1, 0, 0, 0))
+    info.external_attr = 0o644 << 16
+    return info
 
 
 def assemble_map(
@@ -164,18 +171,23 @@ def assemble_map(
                 ("tile_origin_xy", origin),
                 ("tiles", _tile_ij(keys_sorted).astype(np.int32)),
             ):
-                with zf.open(f"{name}.npy", "w") as entry:
+                with zf.open(_member(f"{name}.npy"), "w", force_zip64=True) as entry:
                     np.lib.format.write_array(entry, np.asanyarray(value))
-            zf.write(spool / "face_tile.npy", "face_tile.npy")
+            # fixed timestamps: the same map gives the same bytes
+            with (
+                (spool / "face_tile.npy").open("rb") as src,
+                zf.open(_member("face_tile.npy"), "w", force_zip64=True) as entry,
+            ):
+                shutil.copyfileobj(src, entry, 1 << 20)
 
     atomic_write(out_dir / "tiles.npz", write_tiles)
     atomic_write(
         out_dir / "ground.npz",
-        lambda fh: np.savez(fh, origin_xy=g_origin, cell_m=np.float64(g_cell), heights=heights),
+        lambda fh: savez_stable(fh, origin_xy=g_origin, cell_m=np.float64(g_cell), heights=heights),
     )
     files = {"mesh": "mesh.ply", "tiles": "tiles.npz", "ground": "ground.npz"}
     if drive_xy is not None:
-        atomic_write(out_dir / "drive.npz", lambda fh: np.savez(fh, xy=np.asarray(drive_xy, np.float64)))
+        atomic_write(out_dir / "drive.npz", lambda fh: savez_stable(fh, xy=np.asarray(drive_xy, np.float64)))
         files["drive"] = "drive.npz"
     counts = {"vertices": n_v, "triangles": n_f, "ground_vertices": n_g, "tiles": len(keys_sorted)}
     extent = (*lo.tolist(), *hi.tolist())

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from rangemcl.atomic import atomic_write
+from rangemcl.atomic import atomic_write, savez_stable
 from rangemcl.errors import InputError
 from rangemcl.yamlio import parse_yaml, read_text
 
@@ -341,7 +341,7 @@ class MeshMap:
         )
         atomic_write(
             map_dir / "tiles.npz",
-            lambda fh: np.savez(
+            lambda fh: savez_stable(
                 fh,
                 tile_size_m=np.float64(self.tile_size_m),
                 tile_origin_xy=self.tile_origin_xy,
@@ -351,7 +351,7 @@ class MeshMap:
         )
         atomic_write(
             map_dir / "ground.npz",
-            lambda fh: np.savez(
+            lambda fh: savez_stable(
                 fh,
                 origin_xy=self.ground.origin_xy,
                 cell_m=np.float64(self.ground.cell_m),
@@ -360,7 +360,7 @@ class MeshMap:
         )
         files = {"mesh": "mesh.ply", "tiles": "tiles.npz", "ground": "ground.npz"}
         if self.drive_xy is not None:
-            atomic_write(map_dir / "drive.npz", lambda fh: np.savez(fh, xy=self.drive_xy))
+            atomic_write(map_dir / "drive.npz", lambda fh: savez_stable(fh, xy=self.drive_xy))
             files["drive"] = "drive.npz"
         counts = {
             "vertices": self.n_vertices,

@@ -39,3 +39,25 @@ def test_whole_or_absent(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["x.bin"]  # no temporary left behind
     with pytest.raises(InputError, match="cannot write"):
         atomic_write(tmp_path / "missing" / "y.txt", "y")
+
+
+def test_npz_bytes_depend_only_on_the_arrays(monkeypatch):
+    import io
+    import time
+
+    import numpy as np
+
+    from rangemcl.atomic import savez_stable
+
+    arrays = {"a": np.arange(10.0), "b": np.array("meta"), "c": np.zeros((3, 2), np.int32)}
+
+    def write(fn, when, **kw):
+        monkeypatch.setattr(time, "time", lambda: when)
+        buf = io.BytesIO()
+        fn(buf, **arrays, **kw)
+        return buf.getvalue()
+
+    assert write(savez_stable, 1.0e9) == write(savez_stable, 1.5e9)
+    assert write(savez_stable, 1.0e9, compressed=True) == write(savez_stable, 1.5e9, compressed=True)
+    back = np.load(io.BytesIO(write(savez_stable, 1.0e9, compressed=True)))
+    assert all(np.array_equal(back[k], v) for k, v in arrays.items())
