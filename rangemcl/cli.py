@@ -135,6 +135,9 @@ def build_map(
     out: Path = typer.Option(..., help="Map folder to write."),
     config: Path = typer.Option(None, help="YAML settings (defaults: see the map's config.yaml)."),
     workers: int = typer.Option(None, help="Tile jobs in parallel (default: the config's, 0 = all cores)."),
+    overwrite: bool = typer.Option(
+        False, help="Replace the map that OUT holds (it is kept until this one is built)."
+    ),
 ) -> None:
     """Build a tiled mesh map: range-image normals, ground labels, Poisson per tile, ground simplification."""
     import sys
@@ -142,11 +145,13 @@ def build_map(
     from rangemcl.config import load_config
     from rangemcl.mapping.pipeline import MapSettings
     from rangemcl.mapping.pipeline import build_map as run
+    from rangemcl.outdir import MAP_MARKERS, output_folder
 
     settings = load_config(MapSettings, config)
     if workers is not None:
         settings.workers = workers
-    r = run(seq_dir, out, settings, progress=sys.stderr.isatty())
+    with output_folder(out, overwrite=overwrite, kind="map", markers=MAP_MARKERS):
+        r = run(seq_dir, out, settings, progress=sys.stderr.isatty())
     typer.echo(
         f"wrote {out}: {r.triangles:,} triangles in {r.tiles} tiles from {r.scans_used}/{r.scans_total} "
         f"scans ({r.points_used:,} points; ground simplification {r.triangles_before_simplify:,} -> "
@@ -165,12 +170,16 @@ def import_mesh_cmd(
     mesh: Path = typer.Argument(..., help="A triangle mesh file (PLY, OBJ)."),
     out: Path = typer.Option(..., help="Map folder to write."),
     tile_size: float = typer.Option(100.0, help="Tile side, metres."),
+    overwrite: bool = typer.Option(False, help="Replace the map that OUT holds."),
 ) -> None:
     """Turn any triangle mesh (e.g. a published range-mcl map) into a map folder."""
     from rangemcl.mapping.meshmap import import_mesh
+    from rangemcl.outdir import MAP_MARKERS, check_output, output_folder
 
+    check_output(out, overwrite=overwrite, kind="map", markers=MAP_MARKERS)  # before reading the mesh
     m = import_mesh(mesh, tile_size_m=tile_size, meta={"source_mesh": str(mesh.resolve())})
-    m.save(out)
+    with output_folder(out, overwrite=overwrite, kind="map", markers=MAP_MARKERS):
+        m.save(out)
     typer.echo(f"wrote {out}: {m.n_triangles:,} triangles in {len(m.tiles)} tiles")
 
 
@@ -246,6 +255,9 @@ def localize(
     ),
     plots: bool = typer.Option(True, help="Write trajectory, error and particle plots."),
     threads: int = typer.Option(None, help="CPU threads for ray casting (default: all cores)."),
+    overwrite: bool = typer.Option(
+        False, help="Replace the results that OUT holds (they are kept until this run has results)."
+    ),
 ) -> None:
     """Localize a sequence in a mesh map (Monte Carlo localization, range-image observation model)."""
     import sys
@@ -277,8 +289,13 @@ def localize(
         plots=plots,
         progress=sys.stderr.isatty(),
     )
+    from rangemcl.outdir import RESULT_MARKERS, has_frames, output_folder
+
     try:
-        s = localize_sequence(seq_dir, map_dir, out, settings, opts)
+        with output_folder(
+            out, overwrite=overwrite, kind="localization results", markers=RESULT_MARKERS, keep_if=has_frames
+        ):
+            s = localize_sequence(seq_dir, map_dir, out, settings, opts)
     except KeyboardInterrupt:
         typer.echo(f"interrupted: the frames localized so far are in {out}", err=True)
         raise typer.Exit(130) from None
