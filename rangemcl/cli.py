@@ -303,11 +303,14 @@ def localize(
     typer.echo(
         f"wrote {out}: {s['frames']} frames, "
         + (f"converged at frame {conv}" if conv is not None else "never converged")
-        + f", {s['recoveries']} recoveries, {s['skipped_scans'] + s['unreadable_scans']} scans skipped, "
+        + f", {s['recoveries']} recoveries, {s['skipped_scans']} scans without a valid point and "
+        f"{s['unreadable_scans']} unreadable scans skipped, "
         f"{s['seconds_total']:.1f} s"
     )
     if s["odometry_source"] != "odometry.txt":
         typer.echo(f"  odometry from {s['odometry_source']}")
+    if s.get("calib_source", "calib.txt") != "calib.txt":
+        typer.echo(f"  sensor-to-pose calibration: {s['calib_source']}")
     m = s.get("metrics")
     if m:
         typer.echo(_metrics_line(m))

@@ -94,11 +94,15 @@ def _convert(tp, value, where: str, dotted: str):
 
 
 def load_config(cls: type[T], path: str | os.PathLike | None) -> T:
-    """Defaults of ``cls``, overridden by the YAML file at ``path`` (if given)."""
+    """Defaults of ``cls``, overridden by the YAML file at ``path`` (if given), and checked (``check()``,
+    where the class has one) so that a bad value is refused before any work, naming the file and key."""
     if path is None:
         return cls()
     text = read_text(path, "config file")
-    return from_dict(cls, parse_yaml(text, str(path)), str(path))
+    out = from_dict(cls, parse_yaml(text, str(path)), str(path))
+    if hasattr(out, "check"):
+        out.check(str(path))
+    return out
 
 
 def to_dict(config) -> dict:

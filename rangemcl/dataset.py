@@ -269,6 +269,7 @@ class Sequence:
     imu_roll_pitch: np.ndarray | None = None
     calib_Tr: np.ndarray = field(default_factory=lambda: np.eye(4))
     meta: dict[str, Any] = field(default_factory=dict)
+    calib_source: str = "calib.txt"  # or "identity (no calib.txt)": said, never silently assumed
 
     def __len__(self) -> int:
         return len(self.scan_paths)
@@ -411,6 +412,8 @@ def load_sequence(path: str | os.PathLike[str], *, require_poses: bool = False) 
                 )
 
     seq = Sequence(root=root, scan_paths=scan_paths, calib_Tr=calib_Tr, meta=meta)
+    if not (root / "calib.txt").exists():
+        seq.calib_source = "identity (no calib.txt)"
     identity = np.array_equal(calib_Tr, np.eye(4))
     if "poses" in lines:
         P = _poses_from_lines(sources["poses"], lines["poses"])

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -189,6 +190,16 @@ class LocalizationPipeline:
             raise InputError(f"mode {opt.mode!r}: expected 'global' or 'tracking'")
         if opt.particles is not None and opt.particles <= 0:
             raise InputError(f"particles must be > 0, got {opt.particles}")
+        if opt.frames is not None and opt.frames <= 0:
+            raise InputError(f"frames must be > 0, got {opt.frames}")
+        if opt.first_frame < 0:
+            raise InputError(f"first frame must be >= 0, got {opt.first_frame}")
+        if opt.threads is not None and opt.threads <= 0:
+            raise InputError(f"threads must be > 0, got {opt.threads}")
+        if opt.init_pose is not None and opt.mode != "tracking":
+            raise InputError(
+                "an initial pose is for tracking mode (--mode tracking); global mode searches the map"
+            )
         self.seq = seq = load_sequence(self.seq_dir)
         if len(seq) == 0:
             raise InputError(f"{seq.root}: the sequence has no scans")
@@ -245,8 +256,10 @@ class LocalizationPipeline:
                 try:
                     points = seq.scan(i)
                     fire = seq.point_meta(i).get("time_s")
-                except InputError:
+                except InputError as err:
                     ev["unreadable_scans"] += 1
+                    ev.setdefault("unreadable_files", []).append(str(err))
+                    print(f"rangemcl: warning: {err} (frame {i}: prediction only)", file=sys.stderr)
                 rp = tuple(seq.imu_roll_pitch[i]) if seq.imu_roll_pitch is not None else None
                 searching = not loc.converged and self.opt.mode == "global"
                 if k == 0 or i in snap_at or (searching and k % 10 == 0 and len(self.snapshots) < 8):
@@ -337,6 +350,7 @@ class LocalizationPipeline:
             },
             "skipped_scans": ev["skipped_scans"],
             "unreadable_scans": ev["unreadable_scans"],
+            "unreadable_scan_errors": ev.get("unreadable_files", [])[:100],
             "odometry_source": self.odo_source,
             "sensor_height_m": self.height,
             "sensor_height_source": self.height_source,
@@ -351,6 +365,7 @@ class LocalizationPipeline:
             if after.any() and _median(log.seconds[after])
             else None,
             "calib_Tr": seq.calib_Tr.tolist(),
+            "calib_source": seq.calib_source,
         }
         if loc.prior is not None:
             summary["place_prior"] = {

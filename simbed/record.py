@@ -63,6 +63,10 @@ def record(
     out = Path(out)
     if frames < 1:
         raise InputError(f"frames must be >= 1, got {frames}")
+    if actors < 0:
+        raise InputError(f"actors must be >= 0, got {actors}")
+    if variant < 0:
+        raise InputError(f"variant must be >= 0, got {variant}")
     spec = load_spec(sensor)
     check_writable(out)
     rng = np.random.default_rng(seed)

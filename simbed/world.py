@@ -41,8 +41,9 @@ def load_model_spec(path: Path) -> mujoco.MjSpec:
     try:
         return mujoco.MjSpec.from_file(str(path))
     except Exception as err:  # MuJoCo raises ValueError with a multi-line message
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise InputError(f"{path}: malformed MJCF scene: {first}") from None
+        # the message spans lines ("XML parse error 6:" then the detail): keep all of it on one line
+        detail = " ".join(part.strip() for part in str(err).strip().splitlines() if part.strip())
+        raise InputError(f"{path}: malformed MJCF scene: {detail or type(err).__name__}") from None
 
 
 class World:

@@ -10,6 +10,7 @@ effective config and a report.
 from __future__ import annotations
 
 import json
+import math
 import os
 import resource
 import shutil
@@ -93,6 +94,58 @@ class MapSettings:
     simplify: SimplifySettings = field(default_factory=SimplifySettings)
     tiles: TileSettings = field(default_factory=TileSettings)
     workers: int = 0  # tile jobs in parallel (0 = all cores)
+
+    def check(self, where: str = "settings") -> None:
+        """Range checks that the types alone do not give, before any work; an InputError names the key."""
+        sc, g, pr, po, si, t = (
+            self.scans,
+            self.ground,
+            self.projection,
+            self.poisson,
+            self.simplify,
+            self.tiles,
+        )
+        positive = {
+            "scans.max_range_m": sc.max_range_m,
+            "scans.every_nth": sc.every_nth,
+            "scans.max_edge_m": sc.max_edge_m,
+            "ground.max_angle_deg": g.max_angle_deg,
+            "projection.height": pr.height,
+            "projection.width": pr.width,
+            "poisson.depth": po.depth,
+            "poisson.max_support_m": po.max_support_m,
+            "poisson.voxel_m": po.voxel_m,
+            "simplify.voxel_m": si.voxel_m,
+            "tiles.size_m": t.size_m,
+        }
+        if g.sensor_height_m is not None:
+            positive["ground.sensor_height_m"] = g.sensor_height_m
+        for key, value in positive.items():
+            if not (math.isfinite(value) and value > 0):
+                raise InputError(f"{where}: {key} must be > 0, got {value}")
+        non_negative = {
+            "scans.min_range_m": sc.min_range_m,
+            "tiles.margin_m": t.margin_m,
+            "simplify.smooth_iterations": si.smooth_iterations,
+            "workers": self.workers,
+        }
+        for key, value in non_negative.items():
+            if not (math.isfinite(value) and value >= 0):
+                raise InputError(f"{where}: {key} must be >= 0, got {value}")
+        if not math.isfinite(g.z_margin_m):
+            raise InputError(f"{where}: ground.z_margin_m must be finite, got {g.z_margin_m}")
+        if sc.min_range_m >= sc.max_range_m:
+            raise InputError(f"{where}: scans.min_range_m must be below scans.max_range_m")
+        if g.max_angle_deg >= 90:
+            raise InputError(f"{where}: ground.max_angle_deg must be below 90, got {g.max_angle_deg}")
+        if po.depth > 16:
+            raise InputError(f"{where}: poisson.depth must be at most 16, got {po.depth}")
+        if not 0 <= po.density_quantile < 1:
+            raise InputError(
+                f"{where}: poisson.density_quantile must be in [0, 1), got {po.density_quantile}"
+            )
+        if not pr.fov_down_deg < pr.fov_up_deg:
+            raise InputError(f"{where}: projection.fov_down_deg must be below projection.fov_up_deg")
 
 
 # ---------------------------------------------------------------------------------------------- report
@@ -299,6 +352,7 @@ def build_map(
 ) -> BuildReport:
     """Build a mesh map from a sequence with poses and write it (mesh, tiles, metadata, config, report)."""
     settings = settings or MapSettings()
+    settings.check()
     out_dir = Path(out_dir)
     report = BuildReport()
     clock = time.perf_counter()
