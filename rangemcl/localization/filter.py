@@ -399,7 +399,12 @@ class MonteCarloLocalizer:
                 if self._prior_pending and levelled is not None:
                     self._draw_initial_prior(levelled)
                 info.update(self._weigh(rays, levelled, level))
-                if self.converged and self.refiner is not None and not info["recovered"]:
+                if (
+                    self.converged
+                    and self.refiner is not None
+                    and not info["recovered"]
+                    and not (self.lost is not None and self.lost.doubtful)
+                ):
                     info.update(self._refine(rays))
                 self._calibrate(info)
         if self.calibrator is not None:

@@ -225,6 +225,12 @@ class LostDetector:
         self._probation = 0
         self._streak_reset()
 
+    @property
+    def doubtful(self) -> bool:
+        """The last update was bad, or a rival place is being confirmed: not the time to pull the pose
+        towards the scan (a refinement at a wrong place would fit it better and mask the evidence)."""
+        return self.watch.bad_updates > 0 or self._hits > 0
+
     def start_probation(self) -> None:
         self._probation = self.probation_updates
         self._streak_reset()

@@ -172,3 +172,14 @@ def test_one_update_without_the_rival_does_not_undo_its_confirmation():
         out.append(det.update(0.6, 0.3, lambda p=place.copy(), b=b: Opinion(b, p, 0.3, 0.9, 400), motion)[0])
         place = se2_compose(place, motion)
     assert not any(out)
+
+
+def test_the_pose_is_doubtful_after_a_bad_update_or_while_a_rival_counts():
+    det = _detector()
+    assert not det.doubtful
+    det.update(0.1, 0.9, None)
+    assert not det.doubtful
+    det.update(0.6, 0.3, None)  # one bad update: doubtful (no refinement)
+    assert det.doubtful
+    det.update(0.1, 0.9, None)  # good again
+    assert not det.doubtful
