@@ -70,11 +70,13 @@ class SignalWatch:
         self.residuals: list[float] = []  # the best residual at recent good converged updates
         self.inliers: list[float] = []  # ... and the best particle's inlier share
         self.bad_updates = 0
+        self.last_ratio = math.nan  # the last update's inlier share over the running level
 
     def reset(self) -> None:
         self.residuals.clear()
         self.inliers.clear()
         self.bad_updates = 0
+        self.last_ratio = math.nan
 
     def is_bad(self, best: float, inliers: float = math.nan) -> bool:
         """Whether this update's evidence is bad against the running levels (no state change)."""
@@ -93,8 +95,13 @@ class SignalWatch:
         )
         return best > limit
 
+    def level(self) -> float:
+        """The running level of the inlier share (its median over recent good updates; 0.6 before five)."""
+        return float(np.median(self.inliers)) if len(self.inliers) >= min(5, self.history) else 0.6
+
     def update(self, best: float, inliers: float = math.nan) -> bool:
         """Record one converged update; True once it has been bad ``updates`` times in a row."""
+        self.last_ratio = inliers / self.level() if math.isfinite(inliers) else math.nan
         if self.is_bad(best, inliers):
             self.bad_updates += 1
         else:
@@ -199,8 +206,10 @@ class LostDetector:
         opinion_hits: int = 2,
         consistent_m: float = 5.0,
         max_misses: int = 2,
+        doubt_ratio: float = 0.8,
     ):
         self.watch = watch
+        self.doubt_ratio = float(doubt_ratio)
         self.second_opinion = bool(second_opinion)
         self.opinion_top = int(opinion_top)
         self.opinion_per_place = int(opinion_per_place)
@@ -227,9 +236,14 @@ class LostDetector:
 
     @property
     def doubtful(self) -> bool:
-        """The last update was bad, or a rival place is being confirmed: not the time to pull the pose
-        towards the scan (a refinement at a wrong place would fit it better and mask the evidence)."""
-        return self.watch.bad_updates > 0 or self._hits > 0
+        """The last update was bad, or its inlier share fell below ``doubt_ratio`` of the running level,
+        or a rival place is being confirmed: not the time to pull the pose towards the scan (a refinement
+        at a wrong place would fit it better and mask the evidence)."""
+        return (
+            self.watch.bad_updates > 0
+            or self._hits > 0
+            or self.watch.last_ratio < self.doubt_ratio  # (False when NaN)
+        )
 
     def start_probation(self) -> None:
         self._probation = self.probation_updates

@@ -183,3 +183,5 @@ def test_the_pose_is_doubtful_after_a_bad_update_or_while_a_rival_counts():
     assert det.doubtful
     det.update(0.1, 0.9, None)  # good again
     assert not det.doubtful
+    det.update(0.1, 0.6, None)  # not bad (above half the level, 0.9) but well below it
+    assert det.watch.bad_updates == 0 and det.doubtful
