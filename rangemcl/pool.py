@@ -4,14 +4,20 @@
 block raises: a ``rangemcl build-map`` or ``simbed trials`` stopped by Ctrl-C or SIGTERM would go on
 computing (or leave orphaned workers) instead of cleaning up and exiting. :func:`process_pool` terminates
 the running workers on any exception (``KeyboardInterrupt`` included; the jobs not finished end with
-``BrokenProcessPool``) and otherwise shuts the pool down normally. It stays a ``ProcessPoolExecutor``, so a
-worker that dies (killed for memory, say) still raises ``BrokenProcessPool`` rather than hanging.
+``BrokenProcessPool``) and otherwise shuts the pool down normally; its workers die with the parent
+whatever kills it (SIGKILL included: Linux's parent-death signal), so no worker outlives a killed run.
+It stays a ``ProcessPoolExecutor``, so a worker that dies (killed for memory, say) still raises
+``BrokenProcessPool`` rather than hanging.
 """
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import multiprocessing
+import os
 import signal
+import sys
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
@@ -24,7 +30,9 @@ def process_pool(workers: int, context: str | None = None) -> Iterator[ProcessPo
     workers are terminated when the ``with`` block raises."""
     before = set(multiprocessing.active_children())
     mp_context = multiprocessing.get_context(context) if context else None
-    pool = ProcessPoolExecutor(workers, mp_context=mp_context, initializer=_default_sigterm)
+    pool = ProcessPoolExecutor(
+        workers, mp_context=mp_context, initializer=_worker_init, initargs=(os.getpid(),)
+    )
     try:
         yield pool
     except BaseException:
@@ -46,7 +54,23 @@ def process_pool(workers: int, context: str | None = None) -> Iterator[ProcessPo
     pool.shutdown(wait=True)
 
 
-def _default_sigterm() -> None:
+def _worker_init(parent_pid: int) -> None:
     # a forked worker inherits the console scripts' SIGTERM handler (SIGTERM -> KeyboardInterrupt), which
     # would turn terminate() into an exception the worker reports and survives
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    die_with_parent(parent_pid)
+
+
+def die_with_parent(parent_pid: int) -> None:
+    """Have the kernel kill this process when its parent dies, however the parent dies (SIGKILL
+    included: no handler of the parent's runs then). Linux ``prctl(PR_SET_PDEATHSIG)``; elsewhere a no-op.
+    If the parent is already gone, exit now."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent_pid:  # the parent died before the call: nobody would signal us
+        os._exit(1)

@@ -180,3 +180,38 @@ def _state(pid: int) -> str:
         return open(f"/proc/{pid}/status").read().lower()
     except OSError:
         return "zombie"
+
+
+def test_sigkill_leaves_no_process_behind(drive, tmp_path):
+    """`kill -9` during the tile stage: no handler of build-map runs, yet its tile workers and
+    multiprocessing's resource tracker are gone within 2 s (the workers die with their parent)."""
+    import os
+    import signal
+    import time
+
+    _, seq, _ = drive
+    code = "import sys; from rangemcl.cli import main; sys.argv[0] = 'rangemcl'; main()"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code, "build-map", str(seq), "--out", str(tmp_path / "m")],
+        env={**os.environ, "TMPDIR": str(tmp_path)},
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+
+    def children() -> set[int]:
+        try:
+            text = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text()
+        except OSError:
+            return set()
+        return {int(p) for p in text.split()}
+
+    deadline = time.monotonic() + 120
+    while len(children()) < 3 and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)  # two tile workers and the resource tracker
+    left = children()
+    assert proc.poll() is None and len(left) >= 3
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=10)
+    time.sleep(2.0)
+    alive = [p for p in left if os.path.exists(f"/proc/{p}") and "zombie" not in _state(p)]
+    assert not alive, [open(f"/proc/{p}/cmdline").read().replace("\0", " ") for p in alive]
