@@ -138,25 +138,61 @@ def build_map(
     overwrite: bool = typer.Option(
         False, help="Replace the map that OUT holds (it is kept until this one is built)."
     ),
+    resume: bool = typer.Option(
+        False, help="Finish the interrupted build in OUT (same sequence and settings): only missing tiles."
+    ),
 ) -> None:
     """Build a tiled mesh map: range-image normals, ground labels, Poisson per tile, ground simplification."""
     import sys
 
     from rangemcl.config import load_config
-    from rangemcl.mapping.pipeline import MapSettings
+    from rangemcl.errors import InputError
+    from rangemcl.mapping.pipeline import WORK_DIR, MapSettings
     from rangemcl.mapping.pipeline import build_map as run
     from rangemcl.outdir import MAP_MARKERS, output_folder
 
     settings = load_config(MapSettings, config)
     if workers is not None:
         settings.workers = workers
-    with output_folder(out, overwrite=overwrite, kind="map", markers=MAP_MARKERS):
-        r = run(seq_dir, out, settings, progress=sys.stderr.isatty())
+    if resume and overwrite:
+        raise InputError("--resume and --overwrite exclude each other")
+    interrupted = (out / WORK_DIR).is_dir() and not any((out / m).exists() for m in MAP_MARKERS)
+    progress = sys.stderr.isatty()
+    try:
+        if resume:
+            if not interrupted:
+                raise InputError(f"{out}: nothing to resume (no interrupted build in it)")
+            r = run(seq_dir, out, settings, progress=progress, resume=True)
+        else:
+            if interrupted and not overwrite:
+                raise InputError(
+                    f"{out}: holds an interrupted build "
+                    "(give --resume to finish it, or --overwrite to start over)"
+                )
+            with output_folder(
+                out,
+                overwrite=overwrite,
+                kind="map",
+                markers=(*MAP_MARKERS, WORK_DIR),
+                keep_if=lambda p: (p / WORK_DIR / "state.json").is_file(),
+            ):
+                r = run(seq_dir, out, settings, progress=progress)
+    except KeyboardInterrupt:
+        if (out / WORK_DIR / "state.json").is_file():
+            typer.echo(
+                f"interrupted: the finished work is kept in {out / WORK_DIR}; "
+                f"`rangemcl build-map {seq_dir} --out {out} --resume` finishes the map",
+                err=True,
+            )
+        else:
+            typer.echo("interrupted before any stage finished: nothing kept", err=True)
+        raise typer.Exit(130) from None
     typer.echo(
         f"wrote {out}: {r.triangles:,} triangles in {r.tiles} tiles from {r.scans_used}/{r.scans_total} "
         f"scans ({r.points_used:,} points; ground simplification {r.triangles_before_simplify:,} -> "
         f"{r.triangles:,} triangles) in {r.seconds.get('total', 0):.1f} s; peak memory "
         f"{r.peak_rss_main_mb:.0f} MB (this process), {r.peak_rss_tile_jobs_mb:.0f} MB (largest tile job)"
+        + (f"; {r.tiles_resumed} tiles taken from the interrupted build" if r.tiles_resumed else "")
     )
     if r.scans_skipped_empty or r.points_nonfinite:
         typer.echo(

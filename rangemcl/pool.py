@@ -18,8 +18,9 @@ import multiprocessing
 import os
 import signal
 import sys
+import threading
 from collections.abc import Iterator
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import InvalidStateError, ProcessPoolExecutor
 from contextlib import contextmanager
 from multiprocessing.connection import wait
 
@@ -34,6 +35,7 @@ def process_pool(workers: int, context: str | None = None) -> Iterator[ProcessPo
         workers, mp_context=mp_context, initializer=_worker_init, initargs=(os.getpid(),)
     )
     try:
+        _start_workers(pool, workers)
         yield pool
     except BaseException:
         mine = [p for p in multiprocessing.active_children() if p not in before]
@@ -46,15 +48,51 @@ def process_pool(workers: int, context: str | None = None) -> Iterator[ProcessPo
                 p.kill()
                 wait([p.sentinel])
         # the manager thread fails the pending jobs (BrokenProcessPool), reaps the workers and ends;
-        # shutdown waits for it (a first shutdown(wait=False) would forget the thread and not wait)
-        pool.shutdown(wait=True, cancel_futures=True)
+        # shutdown waits for it (a first shutdown(wait=False) would forget the thread and not wait).
+        # Executor.map cancels its pending futures when the consumer is interrupted, and the manager
+        # thread then fails to fail them ("InvalidStateError: CANCELLED", printed from that thread by
+        # CPython 3.11): harmless, so kept off the user's terminal
+        previous = threading.excepthook
+
+        def quiet(args) -> None:
+            if not isinstance(args.exc_value, InvalidStateError):
+                previous(args)
+
+        threading.excepthook = quiet
+        try:
+            pool.shutdown(wait=True, cancel_futures=True)
+        finally:
+            threading.excepthook = previous
         for p in mine:
             p.join()  # children started in the block that were not the pool's own
         raise
     pool.shutdown(wait=True)
 
 
+_STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM}
+
+
+def _ready() -> bool:
+    return True
+
+
+def _start_workers(pool: ProcessPoolExecutor, workers: int) -> None:
+    """Start every worker now, with Ctrl-C and SIGTERM held back meanwhile (they act right after): a
+    stop that lands while a worker is being spawned leaves it reading a half-written start-up message
+    and printing a traceback ("EOFError: Ran out of input") on the user's terminal."""
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS) if main else None
+    try:
+        for f in [pool.submit(_ready) for _ in range(workers)]:
+            f.result()
+    finally:
+        if previous is not None:
+            signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
 def _worker_init(parent_pid: int) -> None:
+    # the signal mask of _start_workers is inherited: a worker must be stoppable
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
     # a forked worker inherits the console scripts' SIGTERM handler (SIGTERM -> KeyboardInterrupt), which
     # would turn terminate() into an exception the worker reports and survives
     signal.signal(signal.SIGTERM, signal.SIG_DFL)

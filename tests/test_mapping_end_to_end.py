@@ -135,9 +135,11 @@ def test_cli_one_line_errors(tmp_path):
     assert out.returncode == 2 and "poisson.dept" in out.stderr and "depth" in out.stderr
 
 
-def test_sigterm_removes_the_work_folder_and_stops_the_workers(drive, tmp_path):
-    """`kill` (SIGTERM) during the tile stage: build-map exits within seconds, leaves no temporary folder,
-    no worker behind and no map folder."""
+def test_sigterm_keeps_the_work_for_resume_and_stops_the_workers(drive, tmp_path):
+    """`kill` (SIGTERM) during the tile stage: build-map exits within seconds, leaves nothing in the
+    system's temp folder and no worker behind, keeps its finished work in the map folder (said in one
+    line); a plain rerun is refused naming --resume, and --resume finishes a map identical, byte for byte,
+    to an uninterrupted build."""
     import os
     import signal
     import time
@@ -165,14 +167,37 @@ def test_sigterm_removes_the_work_folder_and_stops_the_workers(drive, tmp_path):
     while len(children()) < 2 and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.05)  # the tile workers (and multiprocessing's resource tracker) have started
     workers = children()
-    assert proc.poll() is None and len(workers) >= 2 and list(work.glob("rangemcl-map-*"))
+    assert proc.poll() is None and len(workers) >= 2 and (tmp_path / "m" / ".build").is_dir()
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=30)
     assert proc.returncode != 0
-    assert not list(work.iterdir()), err
+    assert not list(work.iterdir()), err  # nothing in the system's temp folder
     assert not (tmp_path / "m" / "mesh.ply").exists()
     time.sleep(0.5)
     assert not [p for p in workers if os.path.exists(f"/proc/{p}") and "zombie" not in _state(p)]
+    # the scan stage had finished: its work is kept in the map folder, and said so in one line
+    assert (tmp_path / "m" / ".build" / "state.json").is_file()
+    assert "--resume" in err and "Traceback" not in err
+
+    def build(*extra):
+        return subprocess.run(
+            [sys.executable, "-c", code, "build-map", str(seq), *extra], capture_output=True, text=True
+        )
+
+    refused = build("--out", str(tmp_path / "m"))
+    assert refused.returncode == 2 and "--resume" in refused.stderr
+    assert len(refused.stderr.strip().splitlines()) == 1
+    resumed = build("--out", str(tmp_path / "m"), "--resume")
+    assert resumed.returncode == 0, resumed.stderr
+    assert not (tmp_path / "m" / ".build").exists()  # the work area goes with the finished map
+    assert MeshMap.load(tmp_path / "m").n_triangles > 10_000
+    again = build("--out", str(tmp_path / "m"), "--resume")
+    assert again.returncode == 2 and "nothing to resume" in again.stderr
+    # the same map, byte for byte, as an uninterrupted build
+    fresh = build("--out", str(tmp_path / "fresh"))
+    assert fresh.returncode == 0, fresh.stderr
+    for name in ("mesh.ply", "tiles.npz", "ground.npz"):
+        assert (tmp_path / "m" / name).read_bytes() == (tmp_path / "fresh" / name).read_bytes(), name
 
 
 def _state(pid: int) -> str:
@@ -214,4 +239,4 @@ def test_sigkill_leaves_no_process_behind(drive, tmp_path):
     proc.wait(timeout=10)
     time.sleep(2.0)
     alive = [p for p in left if os.path.exists(f"/proc/{p}") and "zombie" not in _state(p)]
-    assert not alive, [open(f"/proc/{p}/cmdline").read().replace("\0", " ") for p in alive]
+    assert not alive, [Path(f"/proc/{p}/cmdline").read_text().replace("\0", " ") for p in alive]

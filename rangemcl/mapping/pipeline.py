@@ -14,7 +14,6 @@ import math
 import os
 import resource
 import shutil
-import tempfile
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -22,7 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rangemcl.config import write_config
+from rangemcl.atomic import atomic_write
+from rangemcl.config import to_dict, write_config
 from rangemcl.dataset import Sequence, load_sequence
 from rangemcl.errors import InputError
 from rangemcl.mapping.assemble import assemble_map
@@ -169,6 +169,7 @@ class BuildReport:
     peak_rss_main_mb: float = 0.0  # this process (scans, assembling the map folder)
     peak_rss_tile_jobs_mb: float = 0.0  # the largest tile job (0 when the tiles ran in this process)
     tile_stats: list = field(default_factory=list)
+    tiles_resumed: int = 0  # tiles whose mesh an interrupted build had made (--resume)
 
 
 def _rss_mb(who) -> float:
@@ -335,12 +336,40 @@ def build_tile(job: TileJob) -> dict:
     stats["triangles"] = len(f)
     stats["ground_triangles_after"] = int(is_ground[f].all(axis=1).sum()) if len(f) else 0
     stats["seconds"] = time.perf_counter() - t0
-    np.savez(job.out, vertices=v, faces=f, is_ground=is_ground)
+    # whole or absent (a resumed build trusts every tile output it finds), then its stats beside it
+    tmp = job.out.with_name(f".{job.out.name}.tmp.npz")
+    np.savez(tmp, vertices=v, faces=f, is_ground=is_ground)
+    os.replace(tmp, job.out)
+    job.out.with_suffix(".json").write_text(json.dumps(stats, default=_jsonable))
     return stats
 
 
 def _plain(x) -> bool:
     return isinstance(x, int | float | str | bool)
+
+
+WORK_DIR = ".build"  # an unfinished build's work area inside its map folder (kept for --resume)
+STATE_VERSION = 1
+_SCAN_COUNTS = (
+    "scans_used",
+    "scans_skipped_empty",
+    "points_nonfinite",
+    "points_dynamic_dropped",
+    "points_used",
+)
+
+
+def _fingerprint(seq, settings: MapSettings) -> str:
+    """What a resumed build must share with the interrupted one: the sequence and the settings."""
+    import hashlib
+
+    scans = [str(p) for p in seq.scan_paths]
+    data = json.dumps(
+        {"seq": str(Path(seq.root).resolve()), "scans": scans, "settings": to_dict(settings)},
+        sort_keys=True,
+        default=str,
+    )
+    return hashlib.sha1(data.encode()).hexdigest()
 
 
 def build_map(
@@ -349,8 +378,36 @@ def build_map(
     settings: MapSettings | None = None,
     *,
     progress: bool = False,
+    resume: bool = False,
 ) -> BuildReport:
-    """Build a mesh map from a sequence with poses and write it (mesh, tiles, metadata, config, report)."""
+    """Build a mesh map from a sequence with poses and write it (mesh, tiles, metadata, config, report).
+
+    The work (the spooled points per tile, each tile's mesh) lives in ``OUT/.build`` and is removed when
+    the map is written. An interrupted build keeps it: ``resume=True`` then skips the scan stage if it
+    had finished and builds only the tiles whose mesh is missing (the same sequence and settings are
+    required; an :class:`InputError` says otherwise). Without ``resume`` a leftover work area is swept.
+    A build that fails leaves nothing it created; one interrupted (Ctrl-C, SIGTERM) after its scan stage
+    keeps the work area for ``resume``."""
+    out_dir = Path(out_dir)
+    made = None  # the outermost folder this build creates
+    probe = out_dir
+    while not probe.exists():
+        made = probe
+        probe = probe.parent
+    try:
+        return _build(seq_dir, out_dir, settings, progress, resume)
+    except BaseException as err:
+        work = out_dir / WORK_DIR
+        keep = isinstance(err, KeyboardInterrupt) and (work / "state.json").is_file()
+        if not keep:
+            if made is not None:
+                shutil.rmtree(made, ignore_errors=True)
+            elif not resume:
+                shutil.rmtree(work, ignore_errors=True)
+        raise
+
+
+def _build(seq_dir, out_dir: Path, settings: MapSettings | None, progress: bool, resume: bool) -> BuildReport:
     settings = settings or MapSettings()
     settings.check()
     out_dir = Path(out_dir)
@@ -362,11 +419,41 @@ def build_map(
     if height is None:
         height = float(spec.T_base_sensor[2, 3]) if spec is not None else 1.73
     _check_out_dir(out_dir)
-    work = Path(tempfile.mkdtemp(prefix="rangemcl-map-"))
-    try:
-        spool = TileSpool(work, settings.tiles.size_m, settings.tiles.margin_m)
+    work = out_dir / WORK_DIR
+    state_file = work / "state.json"
+    fingerprint = _fingerprint(seq, settings)
+    state = None
+    if resume:
+        if not state_file.is_file():
+            if not work.is_dir():
+                raise InputError(f"{out_dir}: nothing to resume (no interrupted build in it)")
+        else:
+            state = json.loads(state_file.read_text())
+            if state.get("version") != STATE_VERSION or state.get("fingerprint") != fingerprint:
+                raise InputError(
+                    f"{out_dir}: the interrupted build used another sequence or other settings; "
+                    "give --overwrite to start over"
+                )
+    if state is None and work.exists():
+        shutil.rmtree(work)  # a leftover of a killed run: swept
+    work.mkdir(parents=True, exist_ok=True)
+    spool = TileSpool(work, settings.tiles.size_m, settings.tiles.margin_m)
+    report.scans_total = len(seq)
+    if state is not None:  # the scan stage had finished
+        for k in (
+            "scans_used",
+            "scans_skipped_empty",
+            "points_nonfinite",
+            "points_dynamic_dropped",
+            "points_used",
+        ):
+            setattr(report, k, state["report"][k])
+        for key, names in state["chunks"].items():
+            ti, tj = (int(x) for x in key.split(","))
+            spool.chunks[(ti, tj)] = [work / n for n in names]
+        report.seconds["scans"] = 0.0
+    else:
         indices = range(0, len(seq), max(1, settings.scans.every_nth))
-        report.scans_total = len(seq)
         for i in _progress(indices, progress, "normals and ground"):
             got = oriented_points(seq, i, spec, geometry, settings, height, report)
             if got is None:
@@ -376,63 +463,85 @@ def build_map(
             report.points_used += len(got[0])
             spool.add(*got)
         if report.scans_used == 0:
+            shutil.rmtree(work, ignore_errors=True)
             raise InputError(f"{seq.root}: no scan has a valid point: nothing to build a map from")
         report.seconds["scans"] = time.perf_counter() - clock
-        t1 = time.perf_counter()
-        jobs = [
-            TileJob(
-                tile,
-                chunks,
-                settings.tiles.size_m,
-                settings.poisson,
-                settings.simplify,
-                work / f"mesh_{k}.npz",
-            )
-            for k, (tile, chunks) in enumerate(sorted(spool.chunks.items()))
-        ]
-        workers = settings.workers or os.cpu_count() or 1
-        if workers == 1 or len(jobs) == 1:
-            stats = [build_tile(j) for j in _progress(jobs, progress, "tiles")]
-        else:
-            # spawned workers: each one's peak memory is its own (a forked one counts the parent's pages)
-            with process_pool(min(workers, len(jobs)), "spawn") as pool:
-                stats = list(_progress(pool.map(build_tile, jobs), progress, "tiles", total=len(jobs)))
-        report.seconds["tiles"] = time.perf_counter() - t1
-        report.tile_stats = stats
-        t2 = time.perf_counter()
-        for key in ("triangles_before_simplify", "ground_triangles_before", "ground_triangles_after"):
-            setattr(report, key, int(sum(s[key] for s in stats)))
-        meta = {
-            "frame": "world (the sequence's poses frame)",
-            "source_sequence": str(Path(seq.root).resolve()),
-            "scene": seq.meta.get("scene") if isinstance(seq.meta, dict) else None,
-            "sensor": spec.name if spec is not None else "unknown (Eq. 1 projection)",
-            "sensor_height_m": height,
-            "scans_used": report.scans_used,
-            "created_by": "rangemcl build-map",
+        done = {
+            "version": STATE_VERSION,
+            "fingerprint": fingerprint,
+            "chunks": {f"{ti},{tj}": [p.name for p in paths] for (ti, tj), paths in spool.chunks.items()},
+            "report": {
+                k: getattr(report, k)
+                for k in (
+                    "scans_used",
+                    "scans_skipped_empty",
+                    "points_nonfinite",
+                    "points_dynamic_dropped",
+                    "points_used",
+                )
+            },
         }
-        if sum(s["triangles"] for s in stats) == 0:
-            raise InputError(f"{seq.root}: the reconstruction is empty (too few points with normals)")
-        counts = assemble_map(
-            [j.out for j in jobs],
-            out_dir,
-            tile_size_m=settings.tiles.size_m,
-            work_dir=work,
-            meta=meta,
-            drive_xy=thin_path(seq.poses[:, :2, 3], 1.0),
+        atomic_write(state_file, json.dumps(done))
+    t1 = time.perf_counter()
+    jobs = [
+        TileJob(
+            tile,
+            chunks,
+            settings.tiles.size_m,
+            settings.poisson,
+            settings.simplify,
+            work / f"mesh_{tile[0]}_{tile[1]}.npz",
         )
-        report.tiles = counts["tiles"]
-        report.triangles = counts["triangles"]
-        report.seconds["assemble"] = time.perf_counter() - t2
-        write_config(settings, out_dir / "config.yaml")
-        report.seconds["total"] = time.perf_counter() - clock
-        report.peak_rss_main_mb = _rss_mb(resource.RUSAGE_SELF)
-        report.peak_rss_tile_jobs_mb = _rss_mb(resource.RUSAGE_CHILDREN)
-        report.peak_rss_mb = max(report.peak_rss_main_mb, report.peak_rss_tile_jobs_mb)
-        (out_dir / "report.json").write_text(json.dumps(report.__dict__, indent=2, default=_jsonable))
-        return report
-    finally:
+        for tile, chunks in sorted(spool.chunks.items())
+    ]
+    todo = [j for j in jobs if not (j.out.is_file() and j.out.with_suffix(".json").is_file())]
+    report.tiles_resumed = len(jobs) - len(todo)
+    workers = settings.workers or os.cpu_count() or 1
+    if workers == 1 or len(todo) <= 1:
+        list(build_tile(j) for j in _progress(todo, progress, "tiles"))
+    else:
+        # spawned workers: each one's peak memory is its own (a forked one counts the parent's pages)
+        with process_pool(min(workers, len(todo)), "spawn") as pool:
+            list(_progress(pool.map(build_tile, todo), progress, "tiles", total=len(todo)))
+    stats = [json.loads(j.out.with_suffix(".json").read_text()) for j in jobs]
+    report.seconds["tiles"] = time.perf_counter() - t1
+    report.tile_stats = stats
+    t2 = time.perf_counter()
+    for key in ("triangles_before_simplify", "ground_triangles_before", "ground_triangles_after"):
+        setattr(report, key, int(sum(s[key] for s in stats)))
+    meta = {
+        "frame": "world (the sequence's poses frame)",
+        "source_sequence": str(Path(seq.root).resolve()),
+        "scene": seq.meta.get("scene") if isinstance(seq.meta, dict) else None,
+        "sensor": spec.name if spec is not None else "unknown (Eq. 1 projection)",
+        "sensor_height_m": height,
+        "scans_used": report.scans_used,
+        "created_by": "rangemcl build-map",
+    }
+    if sum(s["triangles"] for s in stats) == 0:
         shutil.rmtree(work, ignore_errors=True)
+        raise InputError(f"{seq.root}: the reconstruction is empty (too few points with normals)")
+    assembly = work / "assemble"
+    shutil.rmtree(assembly, ignore_errors=True)
+    counts = assemble_map(
+        [j.out for j in jobs],
+        out_dir,
+        tile_size_m=settings.tiles.size_m,
+        work_dir=assembly,
+        meta=meta,
+        drive_xy=thin_path(seq.poses[:, :2, 3], 1.0),
+    )
+    report.tiles = counts["tiles"]
+    report.triangles = counts["triangles"]
+    report.seconds["assemble"] = time.perf_counter() - t2
+    write_config(settings, out_dir / "config.yaml")
+    report.seconds["total"] = time.perf_counter() - clock
+    report.peak_rss_main_mb = _rss_mb(resource.RUSAGE_SELF)
+    report.peak_rss_tile_jobs_mb = _rss_mb(resource.RUSAGE_CHILDREN)
+    report.peak_rss_mb = max(report.peak_rss_main_mb, report.peak_rss_tile_jobs_mb)
+    (out_dir / "report.json").write_text(json.dumps(report.__dict__, indent=2, default=_jsonable))
+    shutil.rmtree(work, ignore_errors=True)  # the map is whole: its work area goes
+    return report
 
 
 def _jsonable(x):
