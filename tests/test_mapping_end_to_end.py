@@ -240,3 +240,11 @@ def test_sigkill_leaves_no_process_behind(drive, tmp_path):
     time.sleep(2.0)
     alive = [p for p in left if os.path.exists(f"/proc/{p}") and "zombie" not in _state(p)]
     assert not alive, [Path(f"/proc/{p}/cmdline").read_text().replace("\0", " ") for p in alive]
+    # nothing of it ran after the kill, yet its work is resumable
+    resumed = subprocess.run(
+        [sys.executable, "-c", code, "build-map", str(seq), "--out", str(tmp_path / "m"), "--resume"],
+        capture_output=True,
+        text=True,
+    )
+    assert resumed.returncode == 0, resumed.stderr
+    assert MeshMap.load(tmp_path / "m").n_triangles > 10_000
