@@ -383,6 +383,8 @@ def evaluate(
 
     m = evaluate_results(results, gt, check_every=check_every, success_m=success_m)
     atomic_write(results / "metrics.json", json.dumps(m, indent=2) + "\n")
+    if m.get("partial"):
+        typer.echo(f"partial: {results} is an interrupted run ({m['partial_reason']}, {m['frames']} frames)")
     typer.echo(
         json.dumps(
             {

@@ -151,6 +151,8 @@ def evaluate_results(results_dir, gt_path, *, check_every: int = 100, success_m:
     results_dir = Path(results_dir)
     spath = results_dir / "summary.json"
     epath = results_dir / "estimate_kitti.txt"
+    if not (spath.is_file() and epath.is_file()) and (results_dir / "frames.csv").is_file():
+        return _evaluate_partial(results_dir, gt_path, check_every=check_every, success_m=success_m)
     for p in (spath, epath):
         if not p.is_file():
             raise InputError(f"{p}: missing (is {results_dir} a `rangemcl localize` results folder?)")
@@ -182,6 +184,64 @@ def evaluate_results(results_dir, gt_path, *, check_every: int = 100, success_m:
     shift_event_frames(metrics, first)
     metrics["first_frame"] = first
     metrics["ground_truth"] = str(gt_path)
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in metrics.items()}
+
+
+def _evaluate_partial(results_dir: Path, gt_path, *, check_every: int, success_m: float) -> dict:
+    """A run that was killed outright (no summary.json, no estimate files): its ``frames.csv``, written
+    and flushed frame by frame, has every finished frame's planar estimate and events. The sensor-to-pose
+    calibration is read from the ``calib.txt`` beside ``gt_path`` (identity without one). The metrics
+    say ``"partial": true``."""
+    from rangemcl.dataset import _read_calib
+
+    path = results_dir / "frames.csv"
+    try:
+        lines = path.read_text().splitlines()
+    except OSError as err:
+        raise InputError(f"{path}: cannot read ({err.strerror or err})") from None
+    if len(lines) < 2:
+        raise InputError(f"{path}: no frame was finished: nothing to evaluate")
+    cols = lines[0].split(",")
+    need = ("frame", "x", "y", "yaw", "converged", "recovered")
+    if any(c not in cols for c in need):
+        raise InputError(f"{path}: not a `rangemcl localize` frames.csv (columns {', '.join(need)} expected)")
+    rows = []
+    for n, line in enumerate(lines[1:], start=2):
+        parts = line.split(",")
+        if len(parts) != len(cols):
+            break  # a last line cut by the kill
+        try:
+            rows.append([float(parts[cols.index(c)]) for c in need])
+        except ValueError:
+            raise InputError(f"{path}: line {n} is not numbers") from None
+    if not rows:
+        raise InputError(f"{path}: no complete frame line: nothing to evaluate")
+    data = np.asarray(rows)
+    frames = data[:, 0].astype(int)
+    first = int(frames[0])
+    gt = read_poses_txt(gt_path)
+    if len(gt) <= frames[-1]:
+        raise InputError(f"{gt_path}: has {len(gt)} poses but the run reached frame {frames[-1]}")
+    Tr = _read_calib(Path(gt_path).parent / "calib.txt")
+    truth = xyyaw_of(gt[frames] @ Tr)
+    converged = data[:, 4] > 0.5
+    onsets = [k for k in range(len(frames)) if converged[k] and (k == 0 or not converged[k - 1])]
+    recoveries = [k for k in range(len(frames)) if data[k, 5] > 0.5]
+    conv = onsets[-1] if onsets and converged[-1] else None
+    metrics = localization_metrics(
+        data[:, 1:4],
+        truth,
+        conv,
+        check_every=check_every,
+        success_m=success_m,
+        convergence_frames=onsets,
+        recovery_frames=recoveries,
+    )
+    shift_event_frames(metrics, first)
+    metrics["first_frame"] = first
+    metrics["ground_truth"] = str(gt_path)
+    metrics["partial"] = True
+    metrics["partial_reason"] = "summary.json or estimate_kitti.txt missing: evaluated frames.csv"
     return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in metrics.items()}
 
 

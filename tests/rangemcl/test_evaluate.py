@@ -91,3 +91,39 @@ def test_perturbed_odometry_scales_distance_and_adds_the_gyro_bias():
     np.testing.assert_allclose(tilt, np.broadcast_to(pitch, tilt.shape), atol=1e-9)
     with pytest.raises(InputError, match="scale"):
         perturb_odometry(poses, t, scale=0.0)
+
+
+def test_an_interrupted_run_is_evaluated_from_its_frames_csv_and_said_partial(tmp_path):
+    """A localization killed outright leaves frames.csv only (its last line may be cut): evaluate reads
+    it, against poses.txt in the lidar frame of the calib.txt beside it, and marks the metrics partial."""
+    from rangemcl.dataset import write_poses_txt
+    from rangemcl.evaluate import evaluate_results
+    from rangemcl.localize import FRAME_COLUMNS
+
+    n, first = 40, 10
+    truth = np.zeros((n + first, 4, 4))
+    truth[:] = np.eye(4)
+    truth[:, 0, 3] = np.arange(n + first) * 0.8
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    write_poses_txt(seq / "poses.txt", truth)
+    run = tmp_path / "run"
+    run.mkdir()
+    cols = FRAME_COLUMNS.split(",")
+    lines = [FRAME_COLUMNS]
+    for k in range(n):
+        i = first + k
+        conv = int(k >= 5)
+        row = dict.fromkeys(cols, "0")
+        row.update(frame=str(i), x=f"{0.8 * i + (0.1 if conv else 30.0):.4f}", y="0", yaw="0")
+        row.update(converged=str(conv), recovered="0")
+        lines.append(",".join(row[c] for c in cols))
+    text = "\n".join(lines) + "\n" + "55,5.5,1.0"  # a last line cut by the kill
+    (run / "frames.csv").write_text(text)
+    m = evaluate_results(run, seq / "poses.txt")
+    assert m["partial"] and m["first_frame"] == first and m["frames"] == n
+    assert m["converged_frame"] == first + 5 and m["success"]
+    assert m["location_rmse_m"] == pytest.approx(0.1, abs=1e-3)
+    (run / "frames.csv").write_text(FRAME_COLUMNS + "\n")
+    with pytest.raises(InputError, match="no frame"):
+        evaluate_results(run, seq / "poses.txt")
