@@ -59,20 +59,34 @@ def record(
 
     from simbed.record import record as run_record
 
-    s = run_record(
-        scene,
-        route,
-        sensor,
-        out,
-        frames=frames,
-        actors=actors,
-        variant=variant,
-        seed=seed,
-        skew=skew,
-        device=device,
-        overwrite=overwrite,
-        progress=sys.stderr.isatty(),
-    )
+    try:
+        s = run_record(
+            scene,
+            route,
+            sensor,
+            out,
+            frames=frames,
+            actors=actors,
+            variant=variant,
+            seed=seed,
+            skew=skew,
+            device=device,
+            overwrite=overwrite,
+            progress=sys.stderr.isatty(),
+        )
+    except KeyboardInterrupt:
+        from rangemcl.dataset import load_sequence
+        from rangemcl.errors import InputError
+
+        try:
+            done = len(load_sequence(out))
+        except InputError:
+            done = 0
+        typer.echo(
+            f"interrupted: {done} complete frames in {out} (readable; meta.yaml says complete: false)",
+            err=True,
+        )
+        raise typer.Exit(130) from None
     if s.stuck_at is not None:
         typer.echo(
             f"warning: the car got stuck at ({s.stuck_at[0]:.1f}, {s.stuck_at[1]:.1f}); recording stopped",
