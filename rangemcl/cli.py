@@ -294,6 +294,11 @@ def localize(
     overwrite: bool = typer.Option(
         False, help="Replace the results that OUT holds (they are kept until this run has results)."
     ),
+    resume: bool = typer.Option(
+        False,
+        help="Continue the interrupted run in OUT from its last checkpoint (same command and options; "
+        "the results equal an uninterrupted run's).",
+    ),
 ) -> None:
     """Localize a sequence in a mesh map (Monte Carlo localization, range-image observation model)."""
     import sys
@@ -324,14 +329,31 @@ def localize(
         odometry_from_poses=odometry_from_poses,
         plots=plots,
         progress=sys.stderr.isatty(),
+        resume=resume,
     )
     from rangemcl.outdir import RESULT_MARKERS, has_frames, output_folder
 
+    if resume and overwrite:
+        raise InputError("--resume continues the run in OUT, --overwrite replaces it: give one of them")
+    if resume and not has_frames(out):
+        raise InputError(f"{out}: holds no interrupted localization to resume (frames.csv missing or empty)")
+    if not resume and not overwrite and (Path(out) / ".resume").is_dir():
+        raise InputError(
+            f"{out}: holds an interrupted localization (give --resume to continue it, or --overwrite to "
+            "replace it)"
+        )
     try:
-        with output_folder(
-            out, overwrite=overwrite, kind="localization results", markers=RESULT_MARKERS, keep_if=has_frames
-        ):
+        if resume:  # the folder is the interrupted run's: nothing is set aside or removed
             s = localize_sequence(seq_dir, map_dir, out, settings, opts)
+        else:
+            with output_folder(
+                out,
+                overwrite=overwrite,
+                kind="localization results",
+                markers=RESULT_MARKERS,
+                keep_if=has_frames,
+            ):
+                s = localize_sequence(seq_dir, map_dir, out, settings, opts)
     except KeyboardInterrupt:
         typer.echo(f"interrupted: the frames localized so far are in {out}", err=True)
         raise typer.Exit(130) from None

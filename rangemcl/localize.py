@@ -13,24 +13,31 @@ A results folder holds::
     metrics.json         the paper's metrics (:mod:`rangemcl.evaluate`) when the sequence has poses
     particles.npz        particle clouds at a few frames
     trajectory.png, error.png, particles.png
+    .resume/state.npz    while running and after an interruption: the filter's whole state every 10
+                         frames (:mod:`rangemcl.checkpoint`); removed when the run finishes
 
 The estimate is written for every frame; before convergence it is the (meaningless) mean of a spread
-cloud, and the metrics count from the convergence frame on. An interrupted run (Ctrl-C) writes everything
-computed up to the interruption, marked ``"interrupted": true``.
+cloud, and the metrics count from the convergence frame on. An interrupted run (Ctrl-C, SIGTERM) writes
+everything computed up to the interruption, marked ``"interrupted": true``; one killed outright (SIGKILL,
+a power cut) leaves ``frames.csv`` up to its last frame. Either is continued with ``resume``: the state of
+the last checkpoint is restored and the frames after it are localized again, so the results are those
+of an uninterrupted run with the same seed, byte for byte.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import shutil
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
 from rangemcl.atomic import atomic_write, savez_stable
+from rangemcl.checkpoint import restore_state, save_state
 from rangemcl.config import write_config
 from rangemcl.dataset import Sequence, load_sequence, poses_to_tum, write_poses_txt
 from rangemcl.errors import InputError
@@ -64,6 +71,11 @@ class RunOptions:
     odometry_from_poses: bool = False  # without odometry.txt: derive it from poses.txt (and say so)
     plots: bool = True
     progress: bool = False
+    resume: bool = False  # continue the interrupted run in the results folder (its checkpoint)
+    checkpoint_every: int = 10  # frames between two checkpoints of the filter's state
+
+
+CHECKPOINT = Path(".resume") / "state.npz"  # the filter's state at the last checkpoint, in the results folder
 
 
 def odometry_xyyaw(seq: Sequence, from_poses: bool) -> tuple[np.ndarray, str]:
@@ -172,6 +184,7 @@ class LocalizationPipeline:
     def run(self) -> dict:
         self.load()  # sequence, map, odometry, frame range, sensor height: every check before any output
         self.start_filter()  # the localizer, spread (global) or started at the initial pose (tracking)
+        self.resume_from = self.restore() if self.opt.resume else 0  # the checkpoint's state
         self.filter_frames()  # one step per frame, frames.csv appended as it goes
         self.write_estimates()  # estimate_kitti.txt, estimate_tum.txt, particles.npz
         self.evaluate()  # metrics.json against the sequence's poses
@@ -179,6 +192,7 @@ class LocalizationPipeline:
         self.plot()  # the PNGs
         if self.log.interrupted:
             raise KeyboardInterrupt
+        shutil.rmtree(self.out_dir / CHECKPOINT.parent, ignore_errors=True)
         return summary
 
     # --- steps -------------------------------------------------------------------------------------------
@@ -238,19 +252,75 @@ class LocalizationPipeline:
                     f"{seq.root}: tracking mode needs --init-pose (the sequence has no poses.txt)"
                 )
             loc.start_at(start, opt.particles)
-        write_config(self.settings, self.out_dir / "config.yaml")  # feeds back in with --config
+        if not opt.resume:
+            write_config(self.settings, self.out_dir / "config.yaml")  # feeds back in with --config
+        self.log = FrameLog.empty(self.last - self.first)
+
+    def fingerprint(self) -> dict:
+        """What decides a run's results: a resumed run must have the same."""
+        opt = self.opt
+        fp = {
+            "sequence": str(Path(self.seq_dir).resolve()),
+            "map": str(Path(self.map_dir).resolve()),
+            "settings": asdict(self.settings),
+            "options": {
+                k: getattr(opt, k)
+                for k in ("mode", "particles", "device", "seed", "first_frame", "frames", "init_pose")
+            }
+            | {"odometry_from_poses": opt.odometry_from_poses},
+        }
+        return json.loads(json.dumps(fp))
+
+    def checkpoint_parts(self) -> dict:
+        return {"loc": self.loc, "log": self.log, "events": self.events, "snapshots": self.snapshots}
+
+    def save_checkpoint(self, elapsed_s: float) -> None:
+        (self.out_dir / CHECKPOINT.parent).mkdir(exist_ok=True)
+        extra = {"fingerprint": self.fingerprint(), "done": self.log.done, "elapsed_s": elapsed_s}
+        save_state(self.out_dir / CHECKPOINT, self.checkpoint_parts(), extra)
+
+    def restore(self) -> int:
+        """Put the filter, the frame log and the counts back to the folder's last checkpoint; return the
+        number of frames it holds (the frames after it are localized again)."""
+        path = self.out_dir / CHECKPOINT
+        summary = self.out_dir / "summary.json"
+        if not path.is_file():
+            if summary.is_file() and not json.loads(summary.read_text()).get("interrupted", True):
+                raise InputError(
+                    f"{self.out_dir}: holds a finished run, nothing to resume (--overwrite runs again)"
+                )
+            raise InputError(
+                f"{self.out_dir}: no checkpoint to resume from ({CHECKPOINT} missing: the run was stopped "
+                "before its first checkpoint, or by an earlier version); run it again with --overwrite"
+            )
+        from rangemcl.checkpoint import read_state
+
+        _tree, extra, _arrays = read_state(path)
+        saved, now = extra.get("fingerprint", {}), self.fingerprint()
+        diff = _differences(saved, now)
+        if diff:
+            raise InputError(
+                f"{self.out_dir}: was started with other inputs or settings ({', '.join(diff[:4])}); "
+                "resume with the same command, or --overwrite"
+            )
+        restore_state(path, self.checkpoint_parts())
+        self.resumed_elapsed_s = float(extra.get("elapsed_s", 0.0))
+        self.events.setdefault("resumed_at_frames", []).append(self.first + self.log.done)
+        return self.log.done
 
     def filter_frames(self) -> None:
-        seq, loc, first, last, ev = self.seq, self.loc, self.first, self.last, self.events
+        seq, loc, first, last, ev, log = self.seq, self.loc, self.first, self.last, self.events, self.log
         period = self.period = _frame_period(seq)
-        self.log = log = FrameLog.empty(last - first)
         snap_at = set(np.linspace(first, last - 1, 4).astype(int).tolist())
-        csv = (self.out_dir / "frames.csv").open("w")
-        csv.write(FRAME_COLUMNS + "\n")
+        k0 = self.resume_from
+        csv = self._open_frames_csv(k0)
         bar = _Progress(last - first, self.opt.progress)
-        clock = time.perf_counter()
+        every = max(1, int(self.opt.checkpoint_every))
+        clock = time.perf_counter() - getattr(self, "resumed_elapsed_s", 0.0)
+        if not k0:
+            self.save_checkpoint(0.0)  # from the first frame on, a run can be resumed
         try:
-            for k, i in enumerate(range(first, last)):
+            for k, i in enumerate(range(first + k0, last), start=k0):
                 delta = se2_between(self.odo[i - 1], self.odo[i]) if i > first else np.zeros(3)
                 points = fire = None
                 try:
@@ -274,6 +344,8 @@ class LocalizationPipeline:
                 csv.write(self._csv_line(i, info))
                 csv.flush()
                 log.done = k + 1
+                if log.done % every == 0 and log.done < last - first:
+                    self.save_checkpoint(time.perf_counter() - clock)
                 bar.update(info)
         except KeyboardInterrupt:
             log.interrupted = True
@@ -282,6 +354,24 @@ class LocalizationPipeline:
             bar.close()
         log.wall_s = time.perf_counter() - clock
         log.trim()
+
+    def _open_frames_csv(self, k0: int):
+        """frames.csv for appending: new, or (resuming) cut back to the header and the first ``k0`` frames."""
+        path = self.out_dir / "frames.csv"
+        if not k0:
+            csv = path.open("w")
+            csv.write(FRAME_COLUMNS + "\n")
+            return csv
+        try:
+            lines = path.read_text().splitlines(keepends=True)
+        except OSError as err:
+            raise InputError(f"{path}: cannot resume without it ({err.strerror or err})") from None
+        if not lines or lines[0].strip() != FRAME_COLUMNS or len(lines) < 1 + k0:
+            raise InputError(
+                f"{path}: does not hold the {k0} frames of the checkpoint; run again with --overwrite"
+            )
+        atomic_write(path, "".join(lines[: 1 + k0]))
+        return path.open("a")
 
     def write_estimates(self) -> None:
         log, seq, first = self.log, self.seq, self.first
@@ -329,6 +419,7 @@ class LocalizationPipeline:
             "frames": log.done,
             "frames_requested": self.last - self.first,
             "interrupted": log.interrupted,
+            "resumed_at_frames": ev.get("resumed_at_frames", []),
             "converged_frame": ev["converged_frame"],
             "updates": ev["updates"],
             "resamples": ev["resamples"],
@@ -439,6 +530,16 @@ class LocalizationPipeline:
             f"{info.inliers:.3f},{int(info.vetoed)},{info.refined},{info.refine_shift_m:.4f},"
             f"{info.odometry_scale:.5f},{info.gyro_bias_deg_s:.4f}\n"
         )
+
+
+def _differences(a, b, path: str = "") -> list[str]:
+    """The keys (dotted) in which two JSON trees differ."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        out = []
+        for k in sorted(set(a) | set(b)):
+            out += _differences(a.get(k), b.get(k), f"{path}.{k}" if path else k)
+        return out
+    return [] if a == b else [path or "(all)"]
 
 
 def _median(x: np.ndarray) -> float | None:

@@ -151,3 +151,83 @@ def test_demo_plumbing_on_a_few_frames(tmp_path):
     again: list[str] = []
     run_demo(tmp_path / "demo", s, say=again.append)  # finished steps are reused
     assert any("reusing" in line for line in again)
+
+
+def _localize_cmd(town, out, *extra) -> list[str]:
+    config = town / "small.yaml"
+    config.write_text("particles:\n  global_count: 3000\nobservation:\n  rays: 200\n")
+    return [
+        sys.executable,
+        "-m",
+        "rangemcl.cli",
+        "localize",
+        str(town / "test_run"),
+        "--map",
+        str(town / "map"),
+        "--out",
+        str(out),
+        "--config",
+        str(config),
+        "--seed",
+        "1",
+        "--threads",
+        "1",
+        "--no-plots",
+        *extra,
+    ]
+
+
+def _run_until(cmd: list[str], frames_csv, rows: int, sig) -> int:
+    """Start ``cmd``, send ``sig`` once ``frames_csv`` holds ``rows`` frames; its exit status."""
+    import time
+
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 300
+    while proc.poll() is None and time.monotonic() < deadline:
+        try:
+            if len(frames_csv.read_text().splitlines()) > rows:
+                break
+        except OSError:
+            pass
+        time.sleep(0.02)
+    assert proc.poll() is None, f"the run ended before frame {rows}: {proc.stderr.read()}"
+    proc.send_signal(sig)
+    proc.wait(timeout=60)
+    return proc.returncode
+
+
+def test_localize_resumes_after_sigterm_and_sigkill_to_the_same_results(town):
+    """A global localization stopped by SIGTERM during the search, resumed, killed by SIGKILL after
+    convergence, resumed again: the same estimate_kitti.txt, metrics and particle snapshots as one
+    uninterrupted run with the same seed; the folder's checkpoint is gone once the run finishes."""
+    import signal
+
+    full = town / "resume_full"
+    r = subprocess.run(_localize_cmd(town, full), capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+
+    part = town / "resume_part"
+    status = _run_until(_localize_cmd(town, part), part / "frames.csv", 14, signal.SIGTERM)
+    assert status == 130
+    summary = json.loads((part / "summary.json").read_text())
+    assert summary["interrupted"] and summary["frames"] >= 14 and (part / ".resume" / "state.npz").is_file()
+    # the folder is not taken for a new run without a word
+    r = subprocess.run(_localize_cmd(town, part), capture_output=True, text=True)
+    assert r.returncode == 2 and "--resume" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    # another seed is not the same run
+    r = subprocess.run(_localize_cmd(town, part, "--resume", "--seed", "2"), capture_output=True, text=True)
+    assert r.returncode == 2 and "seed" in r.stderr
+
+    status = _run_until(_localize_cmd(town, part, "--resume"), part / "frames.csv", 41, signal.SIGKILL)
+    assert status == -signal.SIGKILL
+    r = subprocess.run(_localize_cmd(town, part, "--resume"), capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    for name in ("estimate_kitti.txt", "estimate_tum.txt", "metrics.json", "particles.npz"):
+        assert (part / name).read_bytes() == (full / name).read_bytes(), name
+    rows = [line.split(",")[:12] for line in (part / "frames.csv").read_text().splitlines()]
+    assert rows == [line.split(",")[:12] for line in (full / "frames.csv").read_text().splitlines()]
+    summary = json.loads((part / "summary.json").read_text())
+    assert not summary["interrupted"] and len(summary["resumed_at_frames"]) == 2
+    assert not (part / ".resume").exists()
+    r = subprocess.run(_localize_cmd(town, part, "--resume"), capture_output=True, text=True)
+    assert r.returncode == 2 and "finished" in r.stderr
