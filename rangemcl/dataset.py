@@ -494,7 +494,9 @@ class SequenceWriter:
         if entries:
             names = {p.name for p in entries}
             if not overwrite:
-                raise InputError(f"{root}: folder is not empty (overwrite to replace the sequence in it)")
+                raise InputError(
+                    f"{root}: folder is not empty (give --overwrite to replace the sequence in it)"
+                )
             if not names & {*_SEQUENCE_FILES, *_SEQUENCE_DIRS}:
                 raise InputError(f"{root}: folder is not empty and holds no sequence; refusing to overwrite")
             try:
