@@ -156,7 +156,7 @@ def build_map(
         settings.workers = workers
     if resume and overwrite:
         raise InputError("--resume and --overwrite exclude each other")
-    interrupted = (out / WORK_DIR).is_dir() and not any((out / m).exists() for m in MAP_MARKERS)
+    interrupted = (out / WORK_DIR).is_dir()  # a finished build removes its work area
     progress = sys.stderr.isatty()
     try:
         if resume:

@@ -112,3 +112,14 @@ def die_with_parent(parent_pid: int) -> None:
         return
     if os.getppid() != parent_pid:  # the parent died before the call: nobody would signal us
         os._exit(1)
+
+
+KILL_AT_ENV = "RANGEMCL_KILL_AT"
+
+
+def kill_point(name: str) -> None:
+    """A named moment of a long run at which the tests kill it outright: when ``$RANGEMCL_KILL_AT`` is
+    ``name``, the process sends itself SIGKILL here (no handler, no cleanup runs, as with ``kill -9`` or
+    a power cut). Nothing happens otherwise."""
+    if os.environ.get(KILL_AT_ENV) == name:
+        os.kill(os.getpid(), signal.SIGKILL)

@@ -248,3 +248,58 @@ def test_sigkill_leaves_no_process_behind(drive, tmp_path):
     )
     assert resumed.returncode == 0, resumed.stderr
     assert MeshMap.load(tmp_path / "m").n_triangles > 10_000
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(drive):
+    """The drive's map built once, uninterrupted, by the CLI with its default settings."""
+    root, seq, _ = drive
+    out = root / "uninterrupted"
+    r = subprocess.run([sys.executable, "-m", "rangemcl.cli", "build-map", str(seq), "--out", str(out)])
+    assert r.returncode == 0
+    return out
+
+
+@pytest.mark.parametrize("moment", ["scans", "tiles", "assemble"])
+def test_sigkill_at_three_moments_resumes_to_the_same_map_and_leaves_no_process(
+    drive, uninterrupted, tmp_path, moment
+):
+    """`kill -9` in the middle of the scan stage, with some tiles built and some not, and with the map
+    folder half written (``$RANGEMCL_KILL_AT``: the run kills itself there, no handler runs): no process
+    of the killed run (tile workers, multiprocessing's resource tracker) is alive 2 s later, a plain
+    rerun is refused naming --resume, and --resume finishes a map identical, byte for byte, to the
+    uninterrupted build."""
+    import os
+    import signal
+    import time
+    import uuid
+
+    _, seq, _ = drive
+    token = uuid.uuid4().hex
+    out = tmp_path / "m"
+    cmd = [sys.executable, "-m", "rangemcl.cli", "build-map", str(seq), "--out", str(out)]
+    env = {**os.environ, "RANGEMCL_KILL_AT": moment, "RANGEMCL_TEST_TOKEN": token, "TMPDIR": str(tmp_path)}
+    killed = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    assert killed.returncode == -signal.SIGKILL, killed.stderr
+    assert (out / ".build").is_dir()
+    time.sleep(2.0)
+    alive = []
+    for proc in Path("/proc").iterdir():
+        try:
+            ours = proc.name.isdigit() and token.encode() in (proc / "environ").read_bytes()
+            if ours and "zombie" not in _state(int(proc.name)):
+                alive.append((proc / "cmdline").read_text().replace("\0", " "))
+        except OSError:
+            pass
+    assert not alive, alive
+    refused = subprocess.run(cmd, capture_output=True, text=True)
+    assert refused.returncode == 2 and "--resume" in refused.stderr
+    resumed = subprocess.run([*cmd, "--resume"], capture_output=True, text=True)
+    assert resumed.returncode == 0, resumed.stderr
+    assert not (out / ".build").exists()
+    if moment != "scans":
+        assert "taken from the interrupted build" in resumed.stdout
+    names = sorted(p.name for p in uninterrupted.iterdir() if p.name != "report.json")
+    assert sorted(p.name for p in out.iterdir() if p.name != "report.json") == names
+    for name in names:
+        assert (out / name).read_bytes() == (uninterrupted / name).read_bytes(), name

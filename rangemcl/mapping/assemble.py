@@ -43,6 +43,7 @@ from rangemcl.mapping.meshmap import (
     ply_vertex_bytes,
     write_ply_header,
 )
+from rangemcl.pool import kill_point
 
 
 def _load_tile(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -162,6 +163,7 @@ def assemble_map(
 
     out_dir.mkdir(parents=True, exist_ok=True)
     atomic_write(out_dir / "mesh.ply", write_mesh)
+    kill_point("assemble")  # tests: killed with the map folder half written
     faces_spool.unlink()
 
     def write_tiles(fh) -> None:

@@ -31,7 +31,7 @@ from rangemcl.mapping.meshmap import thin_path
 from rangemcl.mapping.normals import scan_normals
 from rangemcl.mapping.poisson import poisson_mesh, transfer_labels
 from rangemcl.mapping.simplify import simplify_ground
-from rangemcl.pool import process_pool
+from rangemcl.pool import kill_point, process_pool
 from rangemcl.rangeimage import RangeImageGeometry
 from rangemcl.sensors import spec_from_dict
 from rangemcl.transforms import interpolate_poses
@@ -454,7 +454,9 @@ def _build(seq_dir, out_dir: Path, settings: MapSettings | None, progress: bool,
         report.seconds["scans"] = 0.0
     else:
         indices = range(0, len(seq), max(1, settings.scans.every_nth))
-        for i in _progress(indices, progress, "normals and ground"):
+        for n, i in enumerate(_progress(indices, progress, "normals and ground")):
+            if n == len(indices) // 2:
+                kill_point("scans")  # tests: killed in the middle of the scan stage
             got = oriented_points(seq, i, spec, geometry, settings, height, report)
             if got is None:
                 report.scans_skipped_empty += 1
@@ -498,11 +500,14 @@ def _build(seq_dir, out_dir: Path, settings: MapSettings | None, progress: bool,
     report.tiles_resumed = len(jobs) - len(todo)
     workers = settings.workers or os.cpu_count() or 1
     if workers == 1 or len(todo) <= 1:
-        list(build_tile(j) for j in _progress(todo, progress, "tiles"))
+        for j in _progress(todo, progress, "tiles"):
+            build_tile(j)
+            kill_point("tiles")  # tests: killed with tiles done and tiles to do
     else:
         # spawned workers: each one's peak memory is its own (a forked one counts the parent's pages)
         with process_pool(min(workers, len(todo)), "spawn") as pool:
-            list(_progress(pool.map(build_tile, todo), progress, "tiles", total=len(todo)))
+            for _ in _progress(pool.map(build_tile, todo), progress, "tiles", total=len(todo)):
+                kill_point("tiles")
     stats = [json.loads(j.out.with_suffix(".json").read_text()) for j in jobs]
     report.seconds["tiles"] = time.perf_counter() - t1
     report.tile_stats = stats
