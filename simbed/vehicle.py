@@ -40,8 +40,12 @@ class CarHandles:
     max_torque_nm: float
 
     @classmethod
-    def find(cls, model: mujoco.MjModel, data: mujoco.MjData) -> CarHandles:
+    def find(cls, model: mujoco.MjModel, data: mujoco.MjData, prefix: str = "") -> CarHandles:
+        """The car of ``scenes/car.xml`` in ``model``, its names starting with ``prefix`` (``ego_`` when
+        simbed added it to a scene without a car)."""
+
         def ident(kind, name):
+            name = prefix + name
             i = mujoco.mj_name2id(model, kind, name)
             if i < 0:
                 raise InputError(

@@ -15,10 +15,15 @@ from rangemcl.raycast import RayCaster
 from simbed.actors import Actor, add_actor_bodies, bind_actors, place_actors, plan_actors
 from simbed.geometry import body_pose, split_static_dynamic
 from simbed.routes import RoadGraph
+from simbed.scene_ground import SceneGround
 from simbed.towngen import TownInfo, load_town_info
 from simbed.vehicle import CarHandles
 
-PARKED = re.compile(r"^parked_v(\d+)_")
+# bodies that belong to one variant of a scene: parked_v{k}_* (generated towns' parked cars) and
+# variant_{k}_* (anything: moved furniture, a construction fence, a door left open)
+VARIANT = re.compile(r"^(?:parked_v|variant_)(\d+)_")
+CAR_XML = Path(__file__).resolve().parents[1] / "scenes" / "car.xml"
+EGO_PREFIX = "ego_"  # the names of the car simbed adds to a scene that has none
 
 
 def scenes_dir() -> Path:
@@ -68,12 +73,17 @@ class World:
         device: str = "cpu",
         threads: int | None = None,
         segments: int = 24,
+        add_car: bool = False,
     ):
         rng = rng or np.random.default_rng(0)
         self.path = resolve_scene(scene)
         sidecar = self.path.with_suffix(".yaml")
         self.town: TownInfo | None = load_town_info(sidecar) if sidecar.is_file() else None
         spec = load_model_spec(self.path)
+        self.car_prefix = ""
+        if add_car and spec.body("car") is None:
+            add_car_body(spec)
+            self.car_prefix = EGO_PREFIX
         if n_actors and self.town is None:
             raise InputError(f"{self.path}: actors need a town with roads ({sidecar} is missing)")
         self.actors: list[Actor] = []
@@ -92,8 +102,9 @@ class World:
         bind_actors(self.model, self.actors)
         self.variant = variant
         self.hidden_geoms = self._hide_other_variants(variant)
-        has_car = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, "car") >= 0
-        self.car = CarHandles.find(self.model, self.data) if has_car else None
+        car_name = self.car_prefix + "car"
+        has_car = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, car_name) >= 0
+        self.car = CarHandles.find(self.model, self.data, self.car_prefix) if has_car else None
         self.time = 0.0
         place_actors(self.data, self.actors, 0.0, self.ground_height)
         mujoco.mj_forward(self.model, self.data)
@@ -118,6 +129,10 @@ class World:
             self.dynamic_handles[bm.body_id] = h
         actor_bodies = {a.body_id for a in self.actors}
         self.actor_handles = [h for b, h in self.dynamic_handles.items() if b in actor_bodies]
+        # scenes without a terrain sidecar: the ground is found in their own static geometry
+        self.scene_ground = (
+            SceneGround.from_triangles(self.caster, self.static_handle, v) if self.town is None else None
+        )
 
     @property
     def graph(self) -> RoadGraph:
@@ -128,25 +143,35 @@ class World:
         return RoadGraph(np.asarray(self.town.nodes, float), np.asarray(self.town.edges, int))
 
     def ground_height(self, x, y):
-        """Terrain height under (x, y): from the town's terrain, or 0 for scenes without one."""
+        """Ground height under (x, y): from the town's terrain, or for other scenes the lowest static
+        surface a car can stand on (:mod:`simbed.scene_ground`; 0 where there is none)."""
         if self.town is not None:
             return self.town.ground_height(x, y)
-        return np.zeros_like(np.asarray(x, dtype=float))
+        if self.scene_ground is None:  # during construction (actors are placed before the caster exists)
+            return np.zeros_like(np.asarray(x, dtype=float))
+        h = self.scene_ground.height(x, y)
+        return np.where(np.isfinite(h), h, 0.0)
 
     def _hide_other_variants(self, variant: int) -> np.ndarray:
-        """Remove the parked cars of other variants: no collisions, invisible; returns their geom ids."""
+        """Remove the bodies of other variants (``parked_v{k}_*``, ``variant_{k}_*``, with their child
+        bodies): no collisions, invisible, not seen by the LiDAR; returns their geom ids."""
         m = self.model
         variants = set()
         hidden = []
         for b in range(m.nbody):
-            match = PARKED.match(mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, b) or "")
+            match = VARIANT.match(mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, b) or "")
             if not match:
                 continue
             variants.add(int(match.group(1)))
             if int(match.group(1)) != variant:
-                hidden.extend(np.flatnonzero(m.geom_bodyid == b).tolist())
+                hidden.extend(np.flatnonzero(_in_subtree(m, b)[m.geom_bodyid]).tolist())
         if variants and variant not in variants:
-            raise InputError(f"{self.path}: no parked-car variant {variant} (it has {sorted(variants)})")
+            raise InputError(f"{self.path}: no variant {variant} (it has {sorted(variants)})")
+        if not variants and variant != 0:
+            raise InputError(
+                f"{self.path}: no variant {variant}: the scene has no bodies named parked_v{{k}}_* or "
+                "variant_{k}_*"
+            )
         hidden = np.asarray(hidden, dtype=int)
         if len(hidden):
             m.geom_contype[hidden] = 0
@@ -167,3 +192,19 @@ class World:
         for _ in range(n):
             mujoco.mj_step(self.model, self.data)
             self.time += self.model.opt.timestep
+
+
+def _in_subtree(model: mujoco.MjModel, root: int) -> np.ndarray:
+    """(nbody,) bool: the body ``root`` and its descendants."""
+    inside = np.zeros(model.nbody, bool)
+    inside[root] = True
+    for b in range(root + 1, model.nbody):  # parents come before their children
+        inside[b] = inside[model.body_parentid[b]]
+    return inside
+
+
+def add_car_body(spec: mujoco.MjSpec) -> None:
+    """Attach the car of ``scenes/car.xml`` to a scene that has none, at the world origin (the drive
+    places it at its route's start), its names prefixed with ``ego_``."""
+    car = mujoco.MjSpec.from_file(str(CAR_XML))
+    spec.worldbody.add_frame().attach_body(car.body("car"), EGO_PREFIX, "")
