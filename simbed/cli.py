@@ -44,7 +44,11 @@ def make_town(
 def record(
     out: Path = typer.Option(..., help="Sequence folder to write (KITTI layout)."),
     scene: str = typer.Option("town_small", help="Scene name in scenes/ or an MJCF file."),
-    route: str = typer.Option("mapping", help="mapping, test, test-N, or a waypoint file (x y per line)."),
+    route: str = typer.Option(
+        "mapping",
+        help="mapping, test, test-N (towns' road networks), or a waypoint file ('x y' or 'x y speed' per "
+        "line; any scene).",
+    ),
     sensor: str = typer.Option("os1-64", help="LiDAR preset or sensor YAML."),
     frames: int = typer.Option(100, help="LiDAR frames to record (fewer if the route ends first)."),
     actors: int = typer.Option(0, help="Moving actors (cars, cyclists, pedestrians)."),
@@ -53,8 +57,12 @@ def record(
     skew: bool = typer.Option(True, help="Per-column sensor poses, so motion skews the scan."),
     device: str = typer.Option("cpu", help="Warp device: cpu or cuda."),
     overwrite: bool = typer.Option(False, help="Replace an existing sequence in OUT."),
+    loop: bool = typer.Option(False, help="Close the waypoint route and drive it lap after lap."),
 ) -> None:
-    """Drive a route and record LiDAR, ground-truth poses, odometry and IMU in the KITTI layout."""
+    """Drive a route and record LiDAR, ground-truth poses, odometry and IMU in the KITTI layout.
+
+    Any MJCF scene can be driven: without a `car` body simbed adds its car at the route's start, and
+    without a town's sidecar the ground is found in the scene's own geometry."""
     import sys
 
     from simbed.record import record as run_record
@@ -73,6 +81,7 @@ def record(
             device=device,
             overwrite=overwrite,
             progress=sys.stderr.isatty(),
+            loop=loop,
         )
     except KeyboardInterrupt:
         from rangemcl.dataset import load_sequence

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -12,7 +13,8 @@ from rangemcl.dataset import SequenceWriter
 from rangemcl.errors import InputError
 from rangemcl.sensors import load_spec
 from simbed import __version__
-from simbed.routes import make_route
+from simbed.lanes import MAX_SPEED_MPS, check_lane, lane_from_waypoints, read_waypoints
+from simbed.routes import Route, is_waypoint_file, load_waypoints, make_route
 from simbed.sim import Drive
 from simbed.world import World
 
@@ -53,12 +55,16 @@ def record(
     device: str = "cpu",
     overwrite: bool = False,
     progress: bool = True,
+    loop: bool = False,
 ) -> RecordSummary:
     """Drive ``route`` in ``scene`` and write ``frames`` LiDAR frames to ``out``.
 
-    Everything that can be checked (scene, sensor, route, output folder) is checked before the first
-    file is written; frames are written one by one, so an interrupted recording leaves a readable prefix.
-    The drive stops early when the route ends.
+    ``scene`` is a generated town or any MJCF scene (a car is added if it has none; the ground comes from
+    its own geometry without a sidecar); ``route`` a named route of a town's road network or a waypoint
+    file (:mod:`simbed.lanes`; ``loop`` closes it and the car drives it lap after lap until ``frames``).
+    Everything that can be checked (scene, sensor, route against the scene, output folder) is checked
+    before the first file is written; frames are written one by one, so an interrupted recording leaves
+    a readable prefix. The drive stops early when the route ends.
     """
     out = Path(out)
     if frames < 1:
@@ -70,19 +76,17 @@ def record(
     spec = load_spec(sensor)
     check_writable(out)
     rng = np.random.default_rng(seed)
-    world = World(scene, variant=variant, n_actors=actors, rng=rng, device=device)
-    if world.town is None:
-        raise InputError(
-            f"{world.path}: routes need a town with roads ({world.path.with_suffix('.yaml')} is missing)"
-        )
-    town = world.town
-    path = make_route(route, world.graph, town.lane_width_m, town.road_width_m)
+    if loop and not is_waypoint_file(route):
+        raise InputError(f"--loop is for waypoint files; route {route!r} is not one")
+    world = World(scene, variant=variant, n_actors=actors, rng=rng, device=device, add_car=True)
+    path = scene_route(world, route, loop=loop, min_length_m=frames / spec.rotation_hz * MAX_SPEED_MPS)
     drive = Drive(world, path, spec, rng, skew=skew)
     meta = {
         "generator": f"simbed {__version__}",
         "scene": world.path.stem,
         "scene_file": str(world.path),
         "route": route,
+        "route_loop": loop,
         "route_length_m": round(path.length_m, 3),
         "parked_variant": variant,
         "actors": actors,
@@ -122,6 +126,36 @@ def record(
                 break
         writer.update_meta(frames=summary.frames, route_done=summary.route_done, stuck_at=summary.stuck_at)
     return summary
+
+
+def scene_route(world: World, route: str, *, loop: bool = False, min_length_m: float = 0.0) -> Route:
+    """The route to drive in ``world``: a named route of its road network, or a waypoint file checked
+    against the scene (:func:`simbed.lanes.check_lane`: ground, steps, the car's box) before anything is
+    written; a loop is repeated lap after lap up to ``min_length_m``."""
+    town = world.town
+    if not is_waypoint_file(route):
+        if town is None:
+            raise InputError(
+                f"{world.path}: route {route!r} needs a road network, which only generated towns have "
+                f"({world.path.with_suffix('.yaml')} is missing); give a waypoint file (x y per line)"
+            )
+        return make_route(route, world.graph, town.lane_width_m, town.road_width_m)
+    wp = read_waypoints(Path(route))
+    if town is not None:
+        load_waypoints(wp, world.graph, town.road_width_m)
+    lane = lane_from_waypoints(wp, loop=loop)
+    ground = world.scene_ground.height if world.scene_ground is not None else world.ground_height
+    check_lane(lane, ground, world.caster, world.static_handle)
+    path = Route(Path(route).stem, lane.points, (), lane.speed)
+    if loop and path.length_m > 0:
+        laps = max(1, math.ceil(min_length_m / path.length_m))
+        path = Route(
+            path.name,
+            np.concatenate([path.points] * laps),
+            (),
+            None if path.speeds is None else np.concatenate([path.speeds] * laps),
+        )
+    return path
 
 
 class _progress:

@@ -197,11 +197,13 @@ def _intersect(p, u, q, v) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Route:
-    """A named lane polyline ``(P, 2)`` and the node walk it came from (empty for waypoint files)."""
+    """A named lane polyline ``(P, 2)``, the node walk it came from (empty for waypoint files) and the
+    speed limit at each point (m/s; NaN or ``None``: the driver's own choice)."""
 
     name: str
     points: np.ndarray
     walk: tuple[int, ...] = ()
+    speeds: np.ndarray | None = None
 
     @property
     def length_m(self) -> float:
@@ -235,35 +237,36 @@ def make_route(
         start = int(rng.integers(len(graph.nodes)))
         walk = random_walk(graph, rng, test_edges, start=start)
         return Route(name, lane_polyline(graph, walk, offset), tuple(walk))
-    path = Path(name)
-    if path.suffix.lower() in (".csv", ".txt") or path.exists():
-        return Route(path.stem, load_waypoints(path, graph, road_width_m))
+    if is_waypoint_file(name):
+        return waypoint_route(Path(name), graph, road_width_m)
     raise InputError(f"unknown route {name!r}; expected one of: {', '.join(ROUTE_NAMES)}")
 
 
-def load_waypoints(path: Path, graph: RoadGraph, road_width_m: float) -> np.ndarray:
-    """Waypoints ``(P, 2)`` from a text file (``x y`` or ``x,y`` per line; ``#`` comments); each must lie
-    on a road (within half a road width of a road centre line), else an ``InputError`` names it."""
-    try:
-        text = path.read_text()
-    except OSError as err:
-        raise InputError(f"{path}: cannot read waypoints ({err.strerror or err})") from None
-    rows = []
-    for n, line in enumerate(text.splitlines(), 1):
-        line = line.split("#")[0].replace(",", " ").strip()
-        if not line:
-            continue
-        parts = line.split()
-        try:
-            x, y = (float(v) for v in parts[:2])
-        except ValueError:
-            raise InputError(f"{path}:{n}: expected 'x y', got {line!r}") from None
-        if len(parts) != 2 or not np.isfinite([x, y]).all():
-            raise InputError(f"{path}:{n}: expected two finite numbers 'x y', got {line!r}")
-        rows.append((x, y))
-    if len(rows) < 2:
-        raise InputError(f"{path}: a route needs at least 2 waypoints, found {len(rows)}")
-    pts = np.asarray(rows)
+def is_waypoint_file(name: str) -> bool:
+    """Whether a route name is a waypoint file (rather than ``mapping``, ``test``, ``test-N``)."""
+    path = Path(name)
+    return path.suffix.lower() in (".csv", ".txt") or path.exists()
+
+
+def waypoint_route(
+    path: Path, graph: RoadGraph | None, road_width_m: float = 0.0, *, loop: bool = False
+) -> Route:
+    """A route from a waypoint file (:mod:`simbed.lanes`: the file is the lane, corners rounded, ``x y
+    [speed]`` per line). With a road network, every waypoint must lie on a road (within half a road width
+    of a road centre line), else an ``InputError`` names it."""
+    from simbed.lanes import lane_from_waypoints, read_waypoints
+
+    wp = read_waypoints(path)
+    if graph is not None:
+        load_waypoints(wp, graph, road_width_m)
+    lane = lane_from_waypoints(wp, loop=loop)
+    return Route(path.stem, lane.points, (), lane.speed)
+
+
+def load_waypoints(wp, graph: RoadGraph, road_width_m: float) -> np.ndarray:
+    """The waypoints ``(P, 2)`` of a :class:`simbed.lanes.Waypoints`, checked to lie on a road (within
+    half a road width of a road centre line), else an ``InputError`` names the first that does not."""
+    path, pts = wp.path, wp.xy
     dist = distance_to_roads(pts, graph)
     off = np.flatnonzero(dist > road_width_m / 2)
     if len(off):

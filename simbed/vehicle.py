@@ -131,6 +131,8 @@ class RouteFollower:
         seg = np.linalg.norm(np.diff(self.points, axis=0), axis=1)
         self.cumlen = np.concatenate([[0.0], np.cumsum(seg)])
         self.curvature = _polyline_curvature(self.points)
+        speeds = getattr(route, "speeds", None)
+        self.speeds = None if speeds is None or not np.isfinite(speeds).any() else np.asarray(speeds, float)
         self.index = 0
         self.integral = 0.0
         self.done = False
@@ -153,6 +155,10 @@ class RouteFollower:
         ahead = np.searchsorted(self.cumlen, self.cumlen[self.index] + max(15.0, 2.0 * speed))
         kappa = float(np.abs(self.curvature[self.index : max(ahead, self.index + 1)]).max())
         v = min(self.cruise_mps, np.sqrt(self.max_lateral_acc / max(kappa, 1e-6)))
+        if self.speeds is not None:  # the route's own limits over the same stretch ahead
+            limits = self.speeds[self.index : max(ahead, self.index + 1)]
+            if np.isfinite(limits).any():
+                v = min(v, float(np.nanmin(limits)))
         remaining = self.cumlen[-1] - self.cumlen[self.index]
         return float(min(v, np.sqrt(max(0.0, 2.0 * 1.5 * (remaining - 2.0)))))
 

@@ -77,7 +77,10 @@ def test_named_routes_and_errors(tmp_path):
         make_route("test-x", g, 3.5, 8.0)
     good = tmp_path / "ok.txt"
     good.write_text("# x y\n0 1\n30, -2\n60 0\n")
-    assert make_route(str(good), g, 3.5, 8.0).points.shape == (3, 2)
+    lane = make_route(str(good), g, 3.5, 8.0).points  # the file is the lane, resampled, corners rounded
+    assert np.allclose(lane[0], (0, 1)) and np.allclose(lane[-1], (60, 0))
+    assert np.linalg.norm(np.diff(lane, axis=0), axis=1).max() <= 0.5 + 1e-9
+    assert np.linalg.norm(lane - np.array([30.0, -2.0]), axis=1).min() < 0.3  # points 0.5 m apart
     off = tmp_path / "off.txt"
     off.write_text("0 0\n30 30\n")
     with pytest.raises(InputError, match=r"off.txt: waypoint 2 .* off the road network"):
