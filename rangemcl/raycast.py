@@ -371,7 +371,9 @@ class RayCaster:
         return self._ids, *self._inv
 
     # ------------------------------------------------------------------ casting
-    def cast(self, origins, directions, max_range=np.inf, *, normals: bool = False) -> RayHits:
+    def cast(
+        self, origins, directions, max_range=np.inf, *, normals: bool = False, only: int | None = None
+    ) -> RayHits:
         """Cast N rays and return the closest hit of each.
 
         Args:
@@ -379,6 +381,7 @@ class RayCaster:
             directions: ``(N, 3)`` directions (normalised inside; must be non-zero).
             max_range: scalar or ``(N,)`` max range in metres (``inf`` allowed, ``<= 0`` gives a miss).
             normals: also return world-frame face normals.
+            only: cast against this mesh (a handle) alone, as if the others were not there.
         """
         d = _as_points("directions", directions)
         n = len(d)
@@ -399,6 +402,9 @@ class RayCaster:
             return RayHits(ranges, mesh_ids, face_ids, normal_out if normals else None)
         with self._lock:
             ids, inv, moved = self.scene_arrays()
+        if only is not None:
+            self._check_handle(only)
+            ids, inv, moved = ids[only : only + 1], inv[only : only + 1], moved[only : only + 1]
         dev = self.device
         inputs = [
             ids,
@@ -428,6 +434,8 @@ class RayCaster:
             ]
             self.launch(cast_kernel, n, inputs, outs, [int(normals)])
             ranges, mesh_ids, face_ids, normal_out = (a.numpy() for a in outs)
+        if only is not None:
+            mesh_ids[mesh_ids >= 0] = only
         return RayHits(ranges, mesh_ids, face_ids, normal_out if normals else None)
 
     def render(self, geometry, T_world_sensor, max_range_m: float = np.inf) -> np.ndarray:

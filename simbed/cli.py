@@ -51,13 +51,18 @@ def record(
     ),
     sensor: str = typer.Option("os1-64", help="LiDAR preset or sensor YAML."),
     frames: int = typer.Option(100, help="LiDAR frames to record (fewer if the route ends first)."),
-    actors: int = typer.Option(0, help="Moving actors (cars, cyclists, pedestrians)."),
+    actors: int = typer.Option(
+        0, help="Moving actors (cars, cyclists, pedestrians): on a town's roads, else beside the route."
+    ),
     variant: int = typer.Option(0, help="Parked-car variant present in the scene."),
     seed: int = typer.Option(0, help="Seed of everything random in the run."),
     skew: bool = typer.Option(True, help="Per-column sensor poses, so motion skews the scan."),
     device: str = typer.Option("cpu", help="Warp device: cpu or cuda."),
     overwrite: bool = typer.Option(False, help="Replace an existing sequence in OUT."),
     loop: bool = typer.Option(False, help="Close the waypoint route and drive it lap after lap."),
+    actor_paths: Path = typer.Option(
+        None, help="YAML file of actors with their own paths (kind, speed, loop, start_m, waypoints)."
+    ),
 ) -> None:
     """Drive a route and record LiDAR, ground-truth poses, odometry and IMU in the KITTI layout.
 
@@ -82,6 +87,7 @@ def record(
             overwrite=overwrite,
             progress=sys.stderr.isatty(),
             loop=loop,
+            actor_paths=actor_paths,
         )
     except KeyboardInterrupt:
         from rangemcl.dataset import load_sequence

@@ -173,26 +173,62 @@ def lane_from_waypoints(
     return Lane(points, speed, leg, wp, loop)
 
 
-def car_box_rays(step_m: float = 0.3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Rays that cross the car's box in its base frame: ``(origins (R, 3), directions (R, 3), lengths
-    (R,))``: along its length, across its width and down through it, on a grid ``step_m`` apart."""
-    x0, x1 = CAR_BOX_X
-    w = CAR_HALF_WIDTH_M
-    z0, z1 = CAR_BOX_Z
+def box_rays(
+    x: tuple[float, float] = CAR_BOX_X,
+    half_width_m: float = CAR_HALF_WIDTH_M,
+    z: tuple[float, float] = CAR_BOX_Z,
+    step_m: float = 0.3,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rays that cross a box (by default the car's, in its base frame): ``(origins (R, 3), directions
+    (R, 3), lengths (R,))`` along its length, across its width and down through it, ``step_m`` apart."""
+    x0, x1 = x
+    w = half_width_m
+    z0, z1 = z
     xs = np.linspace(x0, x1, max(2, math.ceil((x1 - x0) / step_m) + 1))
     ys = np.linspace(-w, w, max(2, math.ceil(2 * w / step_m) + 1))
     zs = np.linspace(z0, z1, max(2, math.ceil((z1 - z0) / step_m) + 1))
     o, d, n = [], [], []
-    for y in ys:  # along the car
-        for z in zs:
-            o.append((x0, y, z)), d.append((1.0, 0.0, 0.0)), n.append(x1 - x0)
-    for x in xs:  # across it
-        for z in zs:
-            o.append((x, -w, z)), d.append((0.0, 1.0, 0.0)), n.append(2 * w)
-    for x in xs:  # down through it
+    for y in ys:  # along the box
+        for zz in zs:
+            o.append((x0, y, zz)), d.append((1.0, 0.0, 0.0)), n.append(x1 - x0)
+    for xx in xs:  # across it
+        for zz in zs:
+            o.append((xx, -w, zz)), d.append((0.0, 1.0, 0.0)), n.append(2 * w)
+    for xx in xs:  # down through it
         for y in ys:
-            o.append((x, y, z1)), d.append((0.0, 0.0, -1.0)), n.append(z1 - z0)
+            o.append((xx, y, z1)), d.append((0.0, 0.0, -1.0)), n.append(z1 - z0)
     return np.asarray(o), np.asarray(d), np.asarray(n)
+
+
+def blocked(points, heading, z, caster, static_handle: int, rays=None) -> tuple[np.ndarray, np.ndarray]:
+    """Whether a box (``rays``: :func:`box_rays`, default the car's) posed at each of ``points`` (Q, 2)
+    with ``heading`` (Q,) on ground ``z`` (Q,) holds static geometry: ``(blocked (Q,) bool, the first hit
+    of each blocked pose (Q, 3), NaN elsewhere)``."""
+    o, d, length = rays if rays is not None else box_rays()
+    pts = np.asarray(points, np.float64)
+    c, s = np.cos(heading), np.sin(heading)
+    ox = pts[:, 0, None] + c[:, None] * o[None, :, 0] - s[:, None] * o[None, :, 1]
+    oy = pts[:, 1, None] + s[:, None] * o[None, :, 0] + c[:, None] * o[None, :, 1]
+    oz = np.asarray(z, np.float64)[:, None] + o[None, :, 2]
+    dx = c[:, None] * d[None, :, 0] - s[:, None] * d[None, :, 1]
+    dy = s[:, None] * d[None, :, 0] + c[:, None] * d[None, :, 1]
+    dz = np.broadcast_to(d[None, :, 2], dx.shape)
+    origins = np.stack([ox, oy, oz], axis=-1).reshape(-1, 3)
+    dirs = np.stack([dx, dy, dz], axis=-1).reshape(-1, 3)
+    reach = np.broadcast_to(length[None, :], dx.shape).ravel()
+    hits = caster.cast(origins, dirs, float(length.max()), only=static_handle)
+    hit = (hits.hit & (hits.ranges <= reach)).reshape(len(pts), -1)
+    where = np.full((len(pts), 3), np.nan)
+    for i in np.flatnonzero(hit.any(axis=1)):
+        k = i * len(o) + int(np.argmax(hit[i]))
+        where[i] = origins[k] + dirs[k] * float(hits.ranges[k])
+    return hit.any(axis=1), where
+
+
+def headings(points: np.ndarray, loop: bool) -> np.ndarray:
+    """The direction of travel at each point of a polyline (towards the next point)."""
+    nxt = np.roll(points, -1, axis=0) if loop else np.vstack([points[1:], 2 * points[-1:] - points[-2:-1]])
+    return np.arctan2(nxt[:, 1] - points[:, 1], nxt[:, 0] - points[:, 0])
 
 
 def check_lane(lane: Lane, ground, caster, static_handle: int, *, max_step_m: float = 0.25) -> np.ndarray:
@@ -222,30 +258,12 @@ def check_lane(lane: Lane, ground, caster, static_handle: int, *, max_step_m: fl
             f"({pts[j, 0]:.1f}, {pts[j, 1]:.1f}) (a kerb, a wall or a building in the way; a car climbs at "
             f"most {max_step_m:.2f} m between route points {np.linalg.norm(pts[j] - pts[i]):.1f} m apart)"
         )
-    nxt = np.roll(pts, -1, axis=0) if lane.loop else np.vstack([pts[1:], 2 * pts[-1:] - pts[-2:-1]])
-    heading = np.arctan2(nxt[:, 1] - pts[:, 1], nxt[:, 0] - pts[:, 0])
-    o, d, length = car_box_rays()
-    c, s = np.cos(heading), np.sin(heading)
-    # every box ray at every route point, in the world
-    ox = pts[:, 0, None] + c[:, None] * o[None, :, 0] - s[:, None] * o[None, :, 1]
-    oy = pts[:, 1, None] + s[:, None] * o[None, :, 0] + c[:, None] * o[None, :, 1]
-    oz = z[:, None] + o[None, :, 2]
-    dx = c[:, None] * d[None, :, 0] - s[:, None] * d[None, :, 1]
-    dy = s[:, None] * d[None, :, 0] + c[:, None] * d[None, :, 1]
-    dzr = np.broadcast_to(d[None, :, 2], dx.shape)
-    origins = np.stack([ox, oy, oz], axis=-1).reshape(-1, 3)
-    dirs = np.stack([dx, dy, dzr], axis=-1).reshape(-1, 3)
-    reach = np.broadcast_to(length[None, :], dx.shape).ravel()
-    hits = caster.cast(origins, dirs, float(length.max()))
-    blocked = hits.hit & (hits.mesh_ids == static_handle) & (hits.ranges <= reach)
-    per_point = blocked.reshape(len(pts), -1).any(axis=1)
-    if per_point.any():
-        i = int(np.flatnonzero(per_point)[0])
-        k = int(np.flatnonzero(blocked.reshape(len(pts), -1)[i])[0])
-        where = origins[i * len(o) + k] + dirs[i * len(o) + k] * float(hits.ranges[i * len(o) + k])
+    stuck, where = blocked(pts, headings(pts, lane.loop), z, caster, static_handle)
+    if stuck.any():
+        i = int(np.flatnonzero(stuck)[0])
         raise InputError(
             f"{wp.name(int(lane.leg[i]))}: the car would hit the scene's static geometry at "
-            f"({where[0]:.1f}, {where[1]:.1f}, {where[2]:.1f}) on the way to the next waypoint "
-            f"({int(per_point.sum())} of {len(pts)} route points blocked)"
+            f"({where[i, 0]:.1f}, {where[i, 1]:.1f}, {where[i, 2]:.1f}) on the way to the next waypoint "
+            f"({int(stuck.sum())} of {len(pts)} route points blocked)"
         )
     return z

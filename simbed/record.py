@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -13,10 +14,11 @@ from rangemcl.dataset import SequenceWriter
 from rangemcl.errors import InputError
 from rangemcl.sensors import load_spec
 from simbed import __version__
+from simbed.actors import actors_along_route, check_actor_paths, read_actor_paths
 from simbed.lanes import MAX_SPEED_MPS, check_lane, lane_from_waypoints, read_waypoints
 from simbed.routes import Route, is_waypoint_file, load_waypoints, make_route
 from simbed.sim import Drive
-from simbed.world import World
+from simbed.world import World, resolve_scene
 
 
 @dataclass
@@ -56,12 +58,15 @@ def record(
     overwrite: bool = False,
     progress: bool = True,
     loop: bool = False,
+    actor_paths: str | os.PathLike | None = None,
 ) -> RecordSummary:
     """Drive ``route`` in ``scene`` and write ``frames`` LiDAR frames to ``out``.
 
     ``scene`` is a generated town or any MJCF scene (a car is added if it has none; the ground comes from
     its own geometry without a sidecar); ``route`` a named route of a town's road network or a waypoint
     file (:mod:`simbed.lanes`; ``loop`` closes it and the car drives it lap after lap until ``frames``).
+    ``actors`` move on a town's roads, or beside a waypoint route in a scene without roads; with
+    ``actor_paths`` (a YAML file, :func:`simbed.actors.read_actor_paths`) they follow their own paths.
     Everything that can be checked (scene, sensor, route against the scene, output folder) is checked
     before the first file is written; frames are written one by one, so an interrupted recording leaves
     a readable prefix. The drive stops early when the route ends.
@@ -78,8 +83,30 @@ def record(
     rng = np.random.default_rng(seed)
     if loop and not is_waypoint_file(route):
         raise InputError(f"--loop is for waypoint files; route {route!r} is not one")
-    world = World(scene, variant=variant, n_actors=actors, rng=rng, device=device, add_car=True)
+    plan, dropped = None, []
+    if actor_paths is not None:
+        if actors:
+            raise InputError("--actors and --actor-paths exclude each other (the file gives the actors)")
+        plan = read_actor_paths(actor_paths)
+    elif actors and is_waypoint_file(route) and not (resolve_scene(scene).with_suffix(".yaml")).is_file():
+        lane = lane_from_waypoints(read_waypoints(Path(route)), loop=loop)
+        plan = actors_along_route(actors, lane.points, loop, rng, keep_clear_xy=tuple(lane.points[0]))
+    world = World(
+        scene,
+        variant=variant,
+        n_actors=0 if plan is not None else actors,
+        rng=rng,
+        device=device,
+        add_car=True,
+        actors=plan,
+    )
     path = scene_route(world, route, loop=loop, min_length_m=frames / spec.rotation_hz * MAX_SPEED_MPS)
+    if plan is not None:
+        ground = world.scene_ground.height if world.scene_ground is not None else world.ground_height
+        source = str(actor_paths) if actor_paths is not None else f"actors beside {route}"
+        dropped = check_actor_paths(world.actors, ground, world.caster, world.static_handle, source)
+        for line in dropped:
+            print(f"simbed: warning: {line}", file=sys.stderr)
     drive = Drive(world, path, spec, rng, skew=skew)
     meta = {
         "generator": f"simbed {__version__}",
@@ -89,7 +116,10 @@ def record(
         "route_loop": loop,
         "route_length_m": round(path.length_m, 3),
         "parked_variant": variant,
-        "actors": actors,
+        "actors": len(world.actors),
+        "actors_requested": actors if actor_paths is None else len(plan),
+        "actor_paths": None if actor_paths is None else str(actor_paths),
+        "actors_left_out": dropped,
         "seed": seed,
         "skew": skew,
         "physics_timestep_s": float(world.model.opt.timestep),

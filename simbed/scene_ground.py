@@ -14,9 +14,8 @@ stand on**: a face whose normal points up (slope at most ``max_slope_deg``) with
   caught by the route checks (:mod:`simbed.lanes`), not here;
 * where no surface qualifies (outside the scene, a hole) the height is NaN.
 
-Heights are cast at query time (exact, no grid to keep), a few hundred rays per call at most; the
-moving bodies (actors, doors) and the ego car are not ground: hits on meshes other than the static
-one are passed through.
+Heights are cast at query time (exact, no grid to keep), against the static mesh alone: the moving
+bodies (actors, doors) and the ego car are not ground.
 """
 
 from __future__ import annotations
@@ -80,18 +79,16 @@ class SceneGround:
         layer = np.zeros(n, np.int64)
         down = np.array([0.0, 0.0, -1.0])
         eps = 1e-4
-        for _ in range(4 * self.max_layers):  # passes through moving bodies count too
+        for _ in range(self.max_layers):
             if len(active) == 0:
                 break
             origins = np.stack([x[active], y[active], start[active]], axis=1)
             reach = start[active] - self.bottom_z
-            hits = self.caster.cast(
-                origins, np.tile(down, (len(active), 1)), float(reach.max()), normals=True
-            )
+            dirs = np.tile(down, (len(active), 1))
+            hits = self.caster.cast(origins, dirs, float(reach.max()), normals=True, only=self.static_handle)
             got = hits.hit & (hits.ranges <= reach)
             hz = start[active] - hits.ranges.astype(np.float64)
-            static = got & (hits.mesh_ids == self.static_handle)
-            for k in np.flatnonzero(static):
+            for k in np.flatnonzero(got):
                 i = active[k]
                 if layer[i] < self.max_layers:
                     z[i, layer[i]] = hz[k]

@@ -58,9 +58,12 @@ class World:
         scene: scene name or MJCF path. A town's sidecar YAML (same stem) gives roads and terrain.
         variant: which parked-car variant is present (bodies ``parked_v{k}_*`` of other k are removed
             from the LiDAR's world and from collisions, and made invisible).
-        n_actors: moving actors (needs a town with roads).
+        n_actors: moving actors on the town's roads (needs a town with roads).
         rng: the run's seeded generator (actor paths).
         device, threads: for the ray caster.
+        add_car: add simbed's car (``scenes/car.xml``, names prefixed ``ego_``) if the scene has none.
+        actors: actors planned by the caller (:func:`simbed.actors.read_actor_paths`,
+            :func:`simbed.actors.actors_along_route`) instead of ``n_actors`` on the town's roads.
     """
 
     def __init__(
@@ -74,20 +77,28 @@ class World:
         threads: int | None = None,
         segments: int = 24,
         add_car: bool = False,
+        actors: list[Actor] | None = None,
     ):
         rng = rng or np.random.default_rng(0)
         self.path = resolve_scene(scene)
         sidecar = self.path.with_suffix(".yaml")
         self.town: TownInfo | None = load_town_info(sidecar) if sidecar.is_file() else None
         spec = load_model_spec(self.path)
+        self.scene_ground: SceneGround | None = None  # set once the static world is in the caster
         self.car_prefix = ""
         if add_car and spec.body("car") is None:
             add_car_body(spec)
             self.car_prefix = EGO_PREFIX
-        if n_actors and self.town is None:
-            raise InputError(f"{self.path}: actors need a town with roads ({sidecar} is missing)")
         self.actors: list[Actor] = []
-        if n_actors:
+        if actors is not None:  # planned by the caller (a paths file, or along a route)
+            self.actors = list(actors)
+            add_actor_bodies(spec, self.actors)
+        elif n_actors and self.town is None:
+            raise InputError(
+                f"{self.path}: actors on their own need a town with roads ({sidecar} is missing); "
+                "give them paths (--actor-paths) or a waypoint route to travel beside"
+            )
+        elif n_actors:
             t = self.town
             self.actors = plan_actors(
                 n_actors, self.graph, t.lane_width_m, t.road_width_m, rng, keep_clear_xy=t.spawn[:2]

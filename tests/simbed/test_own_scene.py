@@ -17,7 +17,7 @@ from simbed.record import record
 from simbed.world import World
 
 PITCH = math.radians(4.0)
-HALF = (6.0, 3.0, 0.5)  # half length, width, thickness of each ramp
+HALF = (6.0, 6.0, 0.5)  # half length, width, thickness of each ramp (room for a lane each way)
 RIDGE_X, LANE_Y = 0.0, -20.0
 
 
@@ -153,3 +153,82 @@ def test_named_routes_need_a_road_network_and_bad_waypoints_stop_before_writing(
             progress=False,
         )
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_actors_from_a_paths_file_are_seen_and_labelled(drive, tmp_path):
+    root, _, _ = drive
+    paths = tmp_path / "paths.yaml"
+    paths.write_text(
+        "actors:\n"
+        "  - {kind: car, speed: 5.0, waypoints: [[-10, -15.0], [25, -15.0]], loop: false}\n"
+        "  - {kind: pedestrian, speed: 1.2, waypoints: [[-20, -24], [-5, -24]], start_m: 3.0}\n"
+    )
+    out = tmp_path / "run"
+    record(
+        str(root / "campus.xml"),
+        str(root / "loop.txt"),
+        "vlp-16",
+        out,
+        frames=30,
+        seed=5,
+        progress=False,
+        loop=True,
+        actor_paths=paths,
+    )
+    seq = load_sequence(out)
+    assert seq.meta["actors"] == 2 and seq.meta["actor_paths"] == str(paths)
+    label = seq.point_meta(20)["label"]
+    pts = seq.scan(20) @ seq.poses[20][:3, :3].T + seq.poses[20][:3, 3]
+    moving = pts[label == 1]
+    assert len(moving) > 30  # both actors are in view from the lane
+    # the labelled points lie on the actors' paths (the car's body is 1.8 m wide, the pedestrian 0.5 m)
+    near_car = np.abs(moving[:, 1] + 15.0) < 1.0
+    near_walker = np.abs(moving[:, 1] + 24.0) < 0.4
+    assert (near_car | near_walker).all() and near_car.any() and near_walker.any()
+    # and no static point is labelled moving
+    static = pts[label == 0]
+    assert not (
+        (np.abs(static[:, 1] + 15.0) < 0.8) & (static[:, 2] > 0.3) & (np.abs(static[:, 0]) > 12)
+    ).any()
+
+
+def test_actors_beside_the_route_and_bad_paths_files(drive, tmp_path):
+    root, _, _ = drive
+    out = tmp_path / "beside"
+    record(
+        str(root / "campus.xml"),
+        str(root / "loop.txt"),
+        "vlp-16",
+        out,
+        frames=10,
+        actors=4,
+        seed=6,
+        progress=False,
+        loop=True,
+    )
+    meta = load_sequence(out).meta
+    assert meta["actors"] + len(meta["actors_left_out"]) == 4 and meta["actors"] >= 3
+    bad = tmp_path / "bad.yaml"
+    for text, words in [
+        ("actors:\n  - {kind: bus, waypoints: [[0, 0], [1, 1]]}\n", "kind 'bus'"),
+        ("actors:\n  - {kind: car, waypoints: [[0, 0]]}\n", "at least two"),
+        ("actors:\n  - {kind: car, speed: -1, waypoints: [[0, 0], [5, 0]]}\n", "speed"),
+        ("actors:\n  - {kind: car, waypoints: [[0, 0], [5, 0]], colour: red}\n", "colour"),
+        ("actors:\n  - {kind: car, waypoints: [[-15, 0], [15, 0]]}\n", "steps"),  # through the hall
+        ("actors:\n  - {kind: car, waypoints: [[-15.5, -32], [-15.5, -20]]}\n", "static geometry"),  # pole
+        ("cars: []\n", "'actors'"),
+    ]:
+        bad.write_text(text)
+        with pytest.raises(InputError, match=words) as err:
+            record(
+                str(root / "campus.xml"),
+                str(root / "loop.txt"),
+                "vlp-16",
+                tmp_path / "x",
+                frames=5,
+                progress=False,
+                loop=True,
+                actor_paths=bad,
+            )
+        assert "bad.yaml" in str(err.value) and "\n" not in str(err.value)
+        assert not (tmp_path / "x").exists()
