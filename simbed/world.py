@@ -56,8 +56,10 @@ class World:
 
     Args:
         scene: scene name or MJCF path. A town's sidecar YAML (same stem) gives roads and terrain.
-        variant: which parked-car variant is present (bodies ``parked_v{k}_*`` of other k are removed
-            from the LiDAR's world and from collisions, and made invisible).
+        variant: which variant of the scene is present: bodies named ``parked_v{k}_*`` (generated towns'
+            parked cars) or ``variant_{k}_*`` (anything) of other k are removed, with their child bodies,
+            from the LiDAR's world and from collisions, and made invisible; variant 0 of a scene that has
+            no bodies of variant 0 is its world without any variant bodies.
         n_actors: moving actors on the town's roads (needs a town with roads).
         rng: the run's seeded generator (actor paths).
         device, threads: for the ray caster.
@@ -176,7 +178,7 @@ class World:
             variants.add(int(match.group(1)))
             if int(match.group(1)) != variant:
                 hidden.extend(np.flatnonzero(_in_subtree(m, b)[m.geom_bodyid]).tolist())
-        if variants and variant not in variants:
+        if variants and variant not in variants and variant != 0:  # 0: the world without its variants
             raise InputError(f"{self.path}: no variant {variant} (it has {sorted(variants)})")
         if not variants and variant != 0:
             raise InputError(

@@ -232,3 +232,43 @@ def test_actors_beside_the_route_and_bad_paths_files(drive, tmp_path):
             )
         assert "bad.yaml" in str(err.value) and "\n" not in str(err.value)
         assert not (tmp_path / "x").exists()
+
+
+VARIANTS = """<mujoco>
+  <worldbody>
+    <geom name="floor" type="plane" size="30 30 0.1"/>
+    <body name="variant_1_fence" pos="10 0 1"><geom type="box" size="0.1 3 1"/>
+      <body name="gate" pos="0 4 0"><geom type="box" size="0.1 1 1"/></body></body>
+    <body name="variant_2_crates" pos="-10 0 1"><geom type="box" size="1 1 1"/></body>
+    <body name="parked_v2_van" pos="0 10 1"><geom type="box" size="2.5 1 1"/></body>
+    <geom name="kiosk" type="box" size="1 1 1.5" pos="0 -10 1.5"/>
+  </worldbody>
+</mujoco>
+"""
+
+
+@pytest.mark.parametrize("variant", [0, 1, 2])
+def test_variant_bodies_are_shown_only_in_their_variant(tmp_path, variant):
+    scene = tmp_path / "variants.xml"
+    scene.write_text(VARIANTS)
+    world = World(scene, variant=variant)
+    origins = np.array([[0.0, 0.0, 1.0]] * 5)
+    dirs = np.array([[1.0, 0, 0], [10.0, 4.0, 0], [-1.0, 0, 0], [0, 1.0, 0], [0, -1.0, 0]])
+    hits = world.caster.cast(origins, dirs, 50.0)
+    seen = hits.hit & (hits.ranges < 12)
+    # fence and its gate (a child body), crates, van, kiosk (no variant: always there)
+    assert seen.tolist() == [variant == 1, variant == 1, variant == 2, variant == 2, True]
+    # what the LiDAR does not see, the car does not hit and nobody sees in a render either
+    hidden = world.hidden_geoms
+    assert (world.model.geom_contype[hidden] == 0).all() and (world.model.geom_rgba[hidden, 3] == 0).all()
+
+
+def test_a_variant_the_scene_does_not_have_is_one_line(tmp_path):
+    scene = tmp_path / "variants.xml"
+    scene.write_text(VARIANTS)
+    with pytest.raises(InputError, match=r"no variant 3 \(it has \[1, 2\]\)"):
+        World(scene, variant=3)
+    bare = tmp_path / "bare.xml"
+    bare.write_text('<mujoco><worldbody><geom type="plane" size="5 5 0.1"/></worldbody></mujoco>')
+    with pytest.raises(InputError, match="variant_"):
+        World(bare, variant=1)
