@@ -114,6 +114,36 @@ def record(
     )
 
 
+@app.command("import-scene")
+def import_scene(
+    world: Path = typer.Argument(..., help="A triangle mesh: .obj, .ply, .stl, .glb/.gltf or .off."),
+    out: Path = typer.Option(..., help="The MJCF scene to write (.xml; its meshes and ground go beside it)."),
+    scale: float = typer.Option(1.0, help="Metres per unit of the file (0.01 for centimetres)."),
+    up: str = typer.Option("auto", help="The file's up axis: z, y, or auto (y for glTF, z otherwise)."),
+    ground_cell: float = typer.Option(0.5, help="Cell of the height field the car drives on (metres)."),
+    max_piece_faces: int = typer.Option(200_000, help="Triangles per mesh piece at most."),
+    overwrite: bool = typer.Option(False, help="Replace a scene imported before into OUT."),
+) -> None:
+    """Turn a static triangle mesh (a city model, a photogrammetry, a rangemcl map) into a drivable scene:
+    the LiDAR sees the whole mesh, the car drives on a height field sampled from its ground."""
+    from simbed.import_scene import import_scene as run
+
+    r = run(
+        world,
+        out,
+        scale=scale,
+        up=up,
+        ground_cell_m=ground_cell,
+        max_piece_faces=max_piece_faces,
+        overwrite=overwrite,
+    )
+    rows, cols = r.ground_shape
+    typer.echo(
+        f"wrote {r.out}: {r.triangles:,} triangles in {r.pieces} mesh pieces, ground {rows} x {cols} cells "
+        f"of {r.ground_cell_m:.2f} m ({r.ground_cells_without_ground:,} without ground), {r.seconds:.1f} s"
+    )
+
+
 @app.command("export-mesh")
 def export_mesh(
     out: Path = typer.Option(..., help="PLY file to write."),

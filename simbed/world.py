@@ -24,6 +24,7 @@ from simbed.vehicle import CarHandles
 VARIANT = re.compile(r"^(?:parked_v|variant_)(\d+)_")
 CAR_XML = Path(__file__).resolve().parents[1] / "scenes" / "car.xml"
 EGO_PREFIX = "ego_"  # the names of the car simbed adds to a scene that has none
+COLLISION_ONLY_GROUP = 4  # geoms in this MuJoCo group are felt by the car but not seen by the LiDAR
 
 
 def scenes_dir() -> Path:
@@ -122,7 +123,10 @@ class World:
         place_actors(self.data, self.actors, 0.0, self.ground_height)
         mujoco.mj_forward(self.model, self.data)
 
+        # what the LiDAR does not see: other variants' bodies and collision-only geoms (an imported
+        # world's height field, which stands in for its mesh under the car's wheels)
         hidden = set(self.hidden_geoms.tolist())
+        hidden |= set(np.flatnonzero(self.model.geom_group == COLLISION_ONLY_GROUP).tolist())
         parts = split_static_dynamic(
             self.model,
             self.data,

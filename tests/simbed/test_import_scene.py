@@ -1,0 +1,92 @@
+"""``simbed import-scene`` (issue 14): a mesh world becomes a drivable scene whose LiDAR world is the mesh
+itself (``export-mesh`` gives it back within 1 mm) and whose car drives on its ground."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import cKDTree
+
+from rangemcl.dataset import load_sequence
+from rangemcl.errors import InputError
+from simbed.import_scene import import_scene
+from simbed.record import record
+from simbed.world import World
+
+
+def small_world() -> trimesh.Trimesh:
+    """A 60 m square of ground with a hump, three buildings and a pole, z up."""
+    ground = trimesh.creation.box(extents=(60, 60, 1.0))
+    ground.apply_translation((0, 0, -0.5))
+    parts = [ground]
+    for (x, y), (sx, sy, sz) in [((-15, 12), (10, 8, 9)), ((14, 14), (8, 8, 6)), ((16, -15), (12, 6, 4))]:
+        b = trimesh.creation.box(extents=(sx, sy, sz))
+        b.apply_translation((x, y, sz / 2))
+        parts.append(b)
+    pole = trimesh.creation.cylinder(radius=0.15, height=5, sections=16)
+    pole.apply_translation((-5, -8, 2.5))
+    parts.append(pole)
+    return trimesh.util.concatenate(parts)
+
+
+def same_surface(a_v, a_f, b_v, b_f, tol=1e-3) -> None:
+    assert len(a_f) == len(b_f)
+    assert cKDTree(a_v).query(b_v)[0].max() < tol and cKDTree(b_v).query(a_v)[0].max() < tol
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".obj", ".stl", ".glb"])
+def test_export_mesh_gives_the_imported_mesh_back(tmp_path, suffix):
+    mesh = small_world()
+    src = mesh.copy()
+    if suffix == ".glb":  # glTF is y up
+        src.vertices = np.stack([mesh.vertices[:, 0], mesh.vertices[:, 2], -mesh.vertices[:, 1]], axis=1)
+    path = tmp_path / f"world{suffix}"
+    src.export(path)
+    r = import_scene(path, tmp_path / "scene.xml", max_piece_faces=1000 if suffix == ".ply" else 200_000)
+    world = World(tmp_path / "scene.xml")
+    v, f = world.static_triangles
+    same_surface(mesh.vertices, mesh.faces, v, f)
+    assert r.pieces == 1 or suffix == ".ply"
+
+
+def test_the_car_drives_on_the_imported_ground(tmp_path):
+    mesh = small_world()
+    mesh.export(tmp_path / "world.ply")
+    import_scene(tmp_path / "world.ply", tmp_path / "scene.xml")
+    route = tmp_path / "route.txt"
+    route.write_text("-25 -2\n24 -2\n")  # between the buildings, over open ground
+    record(
+        str(tmp_path / "scene.xml"), str(route), "vlp-16", tmp_path / "run", frames=50, seed=1, progress=False
+    )
+    seq = load_sequence(tmp_path / "run")
+    mount = float(seq.meta["sensor"]["mount"]["xyz_m"][2])
+    z = seq.poses[:, 2, 3]
+    assert np.ptp(seq.poses[:, 0, 3]) > 20  # it drove
+    assert np.abs(z - mount).max() < 0.1  # on the ground at z = 0, not in it, not above
+    # and the LiDAR sees the buildings: points up to their roofs
+    pts = seq.scan(40) @ seq.poses[40][:3, :3].T + seq.poses[40][:3, 3]
+    assert pts[:, 2].max() > 3.0
+
+
+def test_bad_worlds_are_one_line(tmp_path):
+    cases = {
+        "text.ply": b"hello, not a mesh\n",
+        "empty.obj": b"",
+        "nan.obj": b"v 0 0 0\nv 1 0 nan\nv 0 1 0\nf 1 2 3\n",
+        "points.obj": b"v 0 0 0\nv 1 0 0\nv 0 1 0\n",
+    }
+    for name, data in cases.items():
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(InputError) as err:
+            import_scene(tmp_path / name, tmp_path / "s.xml")
+        assert name in str(err.value) and "\n" not in str(err.value), str(err.value)
+        assert not (tmp_path / "s.xml").exists()
+    (tmp_path / "w.txt").write_text("1 2 3\n")
+    with pytest.raises(InputError, match="not a mesh file"):
+        import_scene(tmp_path / "w.txt", tmp_path / "s.xml")
+    small_world().export(tmp_path / "world.ply")
+    import_scene(tmp_path / "world.ply", tmp_path / "s.xml")
+    with pytest.raises(InputError, match="--overwrite"):
+        import_scene(tmp_path / "world.ply", tmp_path / "s.xml")
+    import_scene(tmp_path / "world.ply", tmp_path / "s.xml", overwrite=True)
