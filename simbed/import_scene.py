@@ -226,7 +226,7 @@ def import_scene(
     ]
     lines += [
         f'    <geom name="world_{k:03d}" type="mesh" mesh="world_{k:03d}" contype="0" conaffinity="0" '
-        'rgba="0.7 0.7 0.68 1"/>'
+        'rgba="0.62 0.62 0.6 1"/>'
         for k in range(len(names))
     ]
     lines += ["  </worldbody>", "</mujoco>", ""]
