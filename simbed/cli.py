@@ -167,9 +167,11 @@ def demo(
     device: str = typer.Option("cpu", help="Warp device: cpu or cuda."),
     test_frames: int = typer.Option(400, help="Frames of the test drive."),
     particles: int = typer.Option(10000, help="Particles for global localization."),
+    overwrite: bool = typer.Option(False, help="Replace the demo that OUT holds (finished or not)."),
 ) -> None:
     """Map town_small, record a test drive with other parked cars and moving actors, localize globally in
-    the map, and print the metrics (plots in OUT/results)."""
+    the map, and print the metrics (plots in OUT/results). Run again with the same options, an
+    interrupted demo continues where it stopped."""
     from rangemcl.cli import _metrics_line
     from simbed.demo import DemoSettings, run_demo
 
@@ -178,6 +180,7 @@ def demo(
         DemoSettings(seed=seed, test_frames=test_frames, particles=particles),
         device=device,
         say=typer.echo,
+        overwrite=overwrite,
     )
     m = s.get("metrics") or {}
     typer.echo(
@@ -238,8 +241,14 @@ def trials(
         help="With --report-only: also report the same trials run with this localizer settings YAML "
         "('default': no --config), side by side (a method column); may be given more than once.",
     ),
+    overwrite: bool = typer.Option(
+        False, help="Start the suite folder over (its drives, trials and results are replaced)."
+    ),
 ) -> None:
-    """Run (or continue) one of the paper's experiments as a suite of localization trials."""
+    """Run (or continue) one of the paper's experiments as a suite of localization trials.
+
+    A suite folder is continued by design: trials already in its results.csv are kept and not run again
+    (trial keys name every setting), so rerunning the same command after an interruption finishes it."""
     from dataclasses import replace
 
     from rangemcl.errors import InputError
@@ -268,20 +277,37 @@ def trials(
         else replace(suite_config, settings=suite_settings(Path(c)), method=Path(c).stem)
         for c in compare or ()
     )
-    rows = run_suite(
-        suite,
-        out,
-        map_dir,
-        quick=quick,
-        config=suite_config,
-        workers=workers,
-        backend=backend,
-        address=address,
-        device=device,
-        say=typer.echo,
-        report_only=report_only,
-        compare=others,
-    )
+    from rangemcl.outdir import check_output, output_folder
+
+    def run():
+        return run_suite(
+            suite,
+            out,
+            map_dir,
+            quick=quick,
+            config=suite_config,
+            workers=workers,
+            backend=backend,
+            address=address,
+            device=device,
+            say=typer.echo,
+            report_only=report_only,
+            compare=others,
+        )
+
+    markers = ("results.csv", "drives", "trials")
+    if report_only and overwrite:
+        raise InputError("--report-only reads the suite folder, --overwrite replaces it: give one of them")
+    if report_only:
+        rows = run()
+    elif not overwrite and any((Path(out) / m).exists() for m in markers):
+        check_output(out, overwrite=True, kind="suite results", markers=markers)  # writable, ours
+        typer.echo(f"continuing the suite folder {out} (--overwrite starts it over)")
+        rows = run()
+    else:  # a new folder, or --overwrite: the policy of rangemcl.outdir (nothing left by a failed start)
+        keep = lambda p: (p / "results.csv").is_file() or any((p / "drives").glob("*/meta.yaml"))  # noqa: E731
+        with output_folder(out, overwrite=overwrite, kind="suite results", markers=markers, keep_if=keep):
+            rows = run()
     ok = sum(str(r["success"]).lower() == "true" for r in rows)
     typer.echo(
         f"{suite}: {ok}/{len(rows)} trials successful; table {out}/{suite}.md, figure {out}/{suite}.png"

@@ -5,8 +5,10 @@
 3. record a different test drive (another route, parked-car variant 1, moving actors);
 4. localize globally in the map (``rangemcl localize``), print the metrics, write the plots.
 
-Every step writes into one folder; a step whose output is already complete is reused, so an interrupted
-demo continues where it stopped.
+Every step writes into one folder. The folder's ``demo.yaml`` (written first) holds the demo's settings:
+run again with the same settings, the demo continues where it stopped (a step whose output is complete
+is reused); a folder that holds a finished demo, or a demo with other settings, is refused in one line
+naming ``--overwrite``, which replaces the folder whole (:mod:`rangemcl.outdir`).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from rangemcl.atomic import atomic_write
 from rangemcl.config import write_config
 from rangemcl.dataset import load_sequence
 from rangemcl.errors import InputError
@@ -46,11 +49,52 @@ def _complete(seq_dir: Path) -> bool:
         return False
 
 
-def run_demo(out_dir, settings: DemoSettings | None = None, *, device: str = "cpu", say=print) -> dict:
-    """Run the four steps into ``out_dir``; return the localization summary (with metrics)."""
+DEMO_MARKERS = ("demo.yaml", "mapping_drive", "map", "test_drive", "results", "demo_summary.json")
+
+
+def check_demo_folder(out: Path, s: DemoSettings, overwrite: bool) -> bool:
+    """Whether ``out`` holds an unfinished demo with the same settings (to continue); refuses, in one
+    line, a finished demo or one with other settings unless ``overwrite``, and a folder that holds
+    something else. Changes nothing."""
+    from rangemcl.config import to_dict
+    from rangemcl.outdir import check_output
+    from rangemcl.yamlio import parse_yaml, read_text
+
+    if overwrite or not (out / "demo.yaml").is_file():
+        check_output(out, overwrite=overwrite, kind="demo results", markers=DEMO_MARKERS)
+        return False
+    saved = parse_yaml(read_text(out / "demo.yaml", "demo settings"), str(out / "demo.yaml"))
+    now = to_dict(s)
+    if saved != now:
+        diff = sorted(k for k in set(now) | set(saved or {}) if (saved or {}).get(k) != now.get(k))
+        raise InputError(
+            f"{out}: holds a demo with other settings ({', '.join(diff[:4])}); give --overwrite to replace "
+            "it, or another --out"
+        )
+    if (out / "demo_summary.json").is_file():
+        raise InputError(f"{out}: holds this demo, finished (give --overwrite to run it again)")
+    return True
+
+
+def run_demo(
+    out_dir, settings: DemoSettings | None = None, *, device: str = "cpu", say=print, overwrite: bool = False
+) -> dict:
+    """Run the four steps into ``out_dir`` (continuing an unfinished demo with the same settings, or
+    replacing the folder with ``overwrite``); return the localization summary (with metrics)."""
+    from rangemcl.outdir import output_folder
+
     s = settings or DemoSettings()
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    if check_demo_folder(out, s, overwrite):
+        say(f"continuing the demo in {out}")
+        return _run_demo(out, s, device, say)
+    keep = lambda p: (p / "demo.yaml").is_file() and any((p / m).exists() for m in DEMO_MARKERS[1:])  # noqa: E731
+    with output_folder(out, overwrite=overwrite, kind="demo results", markers=DEMO_MARKERS, keep_if=keep):
+        return _run_demo(out, s, device, say)
+
+
+def _run_demo(out: Path, s: DemoSettings, device: str, say) -> dict:
+    write_config(s, out / "demo.yaml")
     timings: dict[str, float] = {}
     clock = time.perf_counter()
 
@@ -114,16 +158,22 @@ def run_demo(out_dir, settings: DemoSettings | None = None, *, device: str = "cp
 
     t0 = time.perf_counter()
     say(f"[localize] global localization with {s.particles:,} particles -> {results}")
+    resume = (results / ".resume").is_dir()  # an interrupted localization of this demo continues
+    if results.exists() and not resume:
+        import shutil
+
+        shutil.rmtree(results)
     summary = localize_sequence(
         test,
         map_dir,
         results,
         LocalizerSettings(),
-        RunOptions(mode="global", particles=s.particles, device=device, seed=s.seed, progress=True),
+        RunOptions(
+            mode="global", particles=s.particles, device=device, seed=s.seed, progress=True, resume=resume
+        ),
     )
     step("localize", t0)
     timings["total"] = time.perf_counter() - clock
     summary["demo_seconds"] = timings
-    write_config(s, out / "demo.yaml")
-    (out / "demo_summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    atomic_write(out / "demo_summary.json", json.dumps(summary, indent=2) + "\n")
     return summary

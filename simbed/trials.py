@@ -383,9 +383,9 @@ def run_suite(
         say(f"suite {suite}: {len(rows)} of {len(keys)} trials finished; report only")
         write_report(suite, rows, out)
         return rows
+    MeshMap.load(map_dir)  # a clear error now rather than in every worker (and before any folder)
     (out / "drives").mkdir(parents=True, exist_ok=True)
     (out / "trials").mkdir(parents=True, exist_ok=True)
-    MeshMap.load(map_dir)  # a clear error now rather than in every worker
     trials = suite_trials(suite, quick, config)
     results_path = out / "results.csv"
     done = {r["key"] for r in read_results(results_path)}

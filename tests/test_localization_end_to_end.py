@@ -148,9 +148,26 @@ def test_demo_plumbing_on_a_few_frames(tmp_path):
         assert (tmp_path / "demo" / name).is_file(), name
     assert summary["frames"] == 20 and set(summary["demo_seconds"]) >= {"map", "localize", "total"}
     assert any(line.startswith("[localize]") for line in lines)
+    # a finished demo is not run over without a word, nor one with other settings
+    from rangemcl.errors import InputError
+    from simbed.demo import check_demo_folder
+
+    with pytest.raises(InputError, match=r"finished.*--overwrite"):
+        run_demo(tmp_path / "demo", s, say=lines.append)
+    with pytest.raises(InputError, match=r"other settings \(seed\).*--overwrite"):
+        run_demo(tmp_path / "demo", DemoSettings(**{**s.__dict__, "seed": 5}), say=lines.append)
+    assert check_demo_folder(tmp_path / "demo", s, overwrite=True) is False  # would replace it
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("mine")
+    with pytest.raises(InputError, match="holds no demo results"):
+        run_demo(tmp_path / "other", s, say=lines.append)
+    assert (tmp_path / "other" / "notes.txt").read_text() == "mine"
+    # an interrupted demo (its localization not finished) continues: the finished steps are reused
+    (tmp_path / "demo" / "demo_summary.json").unlink()
     again: list[str] = []
-    run_demo(tmp_path / "demo", s, say=again.append)  # finished steps are reused
-    assert any("reusing" in line for line in again)
+    run_demo(tmp_path / "demo", s, say=again.append)
+    assert any("continuing" in line for line in again)
+    assert sum("reusing" in line for line in again) == 3
 
 
 def _localize_cmd(town, out, *extra) -> list[str]:

@@ -240,3 +240,26 @@ def test_report_sets_methods_side_by_side_with_their_event_counts(tmp_path):
     assert "| default | vlp-16 | 2 | 2 |" in table and "| paper | vlp-16 | 2 | 1 |" in table
     alone = run_suite("sensors", out, None, config=ours, report_only=True, say=lambda _: None)
     assert len(alone) == 2 and "| method |" not in (out / "sensors.md").read_text()
+
+
+def test_suite_folders_follow_the_output_policy(tmp_path):
+    """A new suite folder whose run fails at once leaves nothing; a folder holding something else is
+    refused even with --overwrite; --report-only and --overwrite exclude each other (issue 18)."""
+    import subprocess
+    import sys
+
+    def trials(*args):
+        return subprocess.run(
+            [sys.executable, "-m", "simbed.cli", "trials", "runtime", *args], capture_output=True, text=True
+        )
+
+    r = trials("--out", str(tmp_path / "new" / "suite"), "--map", str(tmp_path / "no_map"))
+    assert r.returncode == 2 and "no_map" in r.stderr and not (tmp_path / "new").exists()
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep")
+    for extra in ([], ["--overwrite"]):
+        r = trials("--out", str(tmp_path / "mine"), "--map", str(tmp_path / "no_map"), *extra)
+        assert r.returncode == 2 and "holds no suite results" in r.stderr, r.stderr
+    assert (tmp_path / "mine" / "notes.txt").read_text() == "keep"
+    r = trials("--out", str(tmp_path / "x"), "--map", str(tmp_path / "m"), "--report-only", "--overwrite")
+    assert r.returncode == 2 and "--overwrite" in r.stderr
