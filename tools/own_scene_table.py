@@ -32,7 +32,9 @@ def main() -> None:
         "|---|---|---|---|---|---|---|---|",
     ]
     for scene in sorted(p for p in args.out.iterdir() if (p / "map").is_dir()):
-        q = _load(scene / "quality.json") or {}
+        q = _load(scene / "quality.json")
+        if q is None:  # not measured yet
+            continue
         report = _load(scene / "map" / "report.json") or {}
         runs = sorted(scene.glob("loc_*"), key=lambda p: int(p.name.split("_")[1]))
         ms = [m for m in (_load(r / "metrics.json") for r in runs) if m]
