@@ -41,6 +41,31 @@ class DemoSettings:
     particles: int = 10000
     seed: int = 0
 
+    def check(self, device: str = "cpu") -> None:
+        """Every setting (and the device) checked before the demo writes or records anything: a bad one
+        is an :class:`InputError` naming it (and its ``simbed demo`` option)."""
+        from rangemcl.raycast import resolve_device
+        from rangemcl.sensors import load_spec
+        from simbed.world import resolve_scene
+
+        options = {"test_frames": "--test-frames", "particles": "--particles", "seed": "--seed"}
+        for key, least in (
+            ("mapping_frames", 1),
+            ("map_every_nth", 1),
+            ("test_frames", 1),
+            ("test_variant", 0),
+            ("actors", 0),
+            ("particles", 1),
+            ("seed", 0),
+        ):
+            value = getattr(self, key)
+            if value < least:
+                name = options.get(key, f"demo setting {key}")
+                raise InputError(f"{name} must be >= {least}, got {value}")
+        resolve_scene(self.scene)
+        load_spec(self.sensor)
+        resolve_device(device)
+
 
 def _complete(seq_dir: Path) -> bool:
     try:
@@ -84,6 +109,7 @@ def run_demo(
     from rangemcl.outdir import output_folder
 
     s = settings or DemoSettings()
+    s.check(device)
     out = Path(out_dir)
     if check_demo_folder(out, s, overwrite):
         say(f"continuing the demo in {out}")

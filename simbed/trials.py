@@ -370,8 +370,6 @@ def run_suite(
     ``report_only``: run nothing; write SUITE.md and SUITE.png from the trials already in results.csv
     (e.g. of a suite stopped part-way; the table counts the trials it holds); ``compare``: other suite
     configs (other localizer settings) whose trials join the report, side by side."""
-    from rangemcl.mapping.meshmap import MeshMap
-
     out = Path(out_dir)
     if report_only:
         keys = {t.key for cfg in (config, *compare) for t in suite_trials(suite, quick, cfg)}
@@ -383,10 +381,12 @@ def run_suite(
         say(f"suite {suite}: {len(rows)} of {len(keys)} trials finished; report only")
         write_report(suite, rows, out)
         return rows
-    MeshMap.load(map_dir)  # a clear error now rather than in every worker (and before any folder)
+    # a clear error now rather than in every worker minutes later (and before any folder)
+    trials = check_suite(
+        suite, map_dir, quick=quick, config=config, workers=workers, backend=backend, device=device
+    )
     (out / "drives").mkdir(parents=True, exist_ok=True)
     (out / "trials").mkdir(parents=True, exist_ok=True)
-    trials = suite_trials(suite, quick, config)
     results_path = out / "results.csv"
     done = {r["key"] for r in read_results(results_path)}
     todo = [t for t in trials if t.key not in done]
@@ -411,6 +411,49 @@ def run_suite(
     rows = [r for r in read_results(results_path) if r["key"] in keys]
     write_report(suite, rows, out)
     return rows
+
+
+def check_suite(
+    suite: str,
+    map_dir,
+    *,
+    quick: bool = False,
+    config: SuiteConfig | None = None,
+    workers: int | None = None,
+    backend: str = "process",
+    device: str = "cpu",
+) -> list[Trial]:
+    """The suite's trials, once everything they depend on is checked: a bad count, map, sensor, scene,
+    parked-car variant, route, backend or device is an :class:`InputError` now, before a folder is made or
+    a drive recorded (not minutes later in a worker)."""
+    from rangemcl.mapping.meshmap import MeshMap
+    from rangemcl.raycast import resolve_device
+    from rangemcl.sensors import load_spec
+    from simbed.record import scene_route
+    from simbed.world import World
+
+    c = config or SuiteConfig()
+    trials = suite_trials(suite, quick, c)  # the suite's name, observation models, particle counts
+    for option, value, least in (
+        ("--frames", c.frames, 1),
+        ("--starts", c.starts, 1),
+        ("--drive-frames", c.drive_frames, 1),
+        ("--actors", c.actors, 0),
+        ("--variant", c.variant, 0),
+        ("--workers", 0 if workers is None else workers, 0),
+    ):
+        if value < least:
+            raise InputError(f"{option} must be >= {least}, got {value}")
+    if backend not in ("process", "ray"):
+        raise InputError(f"backend {backend!r}: expected 'process' or 'ray'")
+    resolve_device(device)
+    MeshMap.load(map_dir)
+    for sensor in dict.fromkeys([c.sensor, *(c.sensors or ()), *(t.sensor for t in trials)]):
+        load_spec(sensor)
+    world = World(c.scene, variant=c.variant)  # the scene and its parked-car variant
+    for route in dict.fromkeys(t.route for t in trials):
+        scene_route(world, route)
+    return trials
 
 
 def _ensure_drives(trials: list[Trial], drives_dir: Path, device: str, workers: int, say) -> dict[str, Path]:
