@@ -23,6 +23,50 @@ def _root(version: bool = version_option(__version__)) -> None:
     """Range-image Monte Carlo LiDAR localization in triangle-mesh maps."""
 
 
+def _at_least(option: str, value: int | None, least: int) -> None:
+    """An integer option below ``least`` is an InputError naming it (None: not given)."""
+    from rangemcl.errors import InputError
+
+    if value is not None and value < least:
+        raise InputError(f"{option} must be >= {least}, got {value}")
+
+
+def _positive(option: str, value: float) -> None:
+    """A number option that must be finite and > 0."""
+    import math
+
+    from rangemcl.errors import InputError
+
+    if not (math.isfinite(value) and value > 0):
+        raise InputError(f"{option} must be a number > 0, got {value}")
+
+
+def _output_file(option: str, path: Path | None) -> None:
+    """A file to write at the end of a command: refused now if it cannot be written (its folder missing,
+    or the path a folder), not after the work."""
+    from rangemcl.errors import InputError
+
+    if path is None:
+        return
+    if path.is_dir():
+        raise InputError(f"{option} {path}: is a folder (give a file name)")
+    if not path.parent.is_dir():
+        raise InputError(f"{option} {path}: no such folder {path.parent}")
+
+
+def _output_dir(option: str, path: Path) -> None:
+    """A folder a command writes files into (creating it and its parents): refused now if a file is in
+    the way."""
+    from rangemcl.errors import InputError
+
+    probe = path
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir():
+        what = "exists and is not a folder" if probe == path else f"cannot be made ({probe} is not a folder)"
+        raise InputError(f"{path}: {what} (choose another {option})")
+
+
 @app.command()
 def sensors(
     name: str = typer.Argument(None, help="A preset name or a sensor YAML file; omit to list the presets."),
@@ -85,11 +129,15 @@ def sweep(
     from rangemcl import meshgen
     from rangemcl.plots import save_range_image_png
     from rangemcl.rangeimage import RangeImageGeometry
-    from rangemcl.raycast import RayCaster
+    from rangemcl.raycast import RayCaster, resolve_device
     from rangemcl.scanio import write_scan_bin
     from rangemcl.sensors import load_spec
 
+    _at_least("--seed", seed, 0)
+    _at_least("--threads", threads, 0)
+    _output_dir("--out", out)
     spec = load_spec(sensor)
+    resolve_device(device)
     rng = np.random.default_rng(seed)
     town = meshgen.town(seed=seed)
     vertices, faces = town.merged()
@@ -249,6 +297,8 @@ def map_quality_cmd(
     from rangemcl.mapping.meshmap import MeshMap, import_mesh
     from rangemcl.mapping.quality import map_quality
 
+    _positive("--tolerance", tolerance)
+    _output_file("--json", json_out)
     m = MeshMap.load(map_dir)
     t = import_mesh(truth)
     ref = None
@@ -301,6 +351,7 @@ def localize(
     ),
 ) -> None:
     """Localize a sequence in a mesh map (Monte Carlo localization, range-image observation model)."""
+    import math
     import sys
 
     from rangemcl.config import load_config
@@ -308,6 +359,7 @@ def localize(
     from rangemcl.localize import RunOptions, localize_sequence
     from rangemcl.mcl import LocalizerSettings
 
+    _at_least("--seed", seed, 0)
     settings = load_config(LocalizerSettings, config)
     start = None
     if init_pose is not None:
@@ -317,6 +369,8 @@ def localize(
             start = ()
         if len(start) != 3:
             raise InputError(f"--init-pose {init_pose!r}: expected three numbers 'x,y,yaw'")
+        if not all(math.isfinite(t) for t in start):
+            raise InputError(f"--init-pose {init_pose!r}: expected three finite numbers 'x,y,yaw'")
     opts = RunOptions(
         mode=mode,
         particles=particles,
@@ -403,6 +457,8 @@ def evaluate(
     from rangemcl.atomic import atomic_write
     from rangemcl.evaluate import evaluate_results
 
+    _at_least("--check-every", check_every, 1)
+    _positive("--success-m", success_m)
     m = evaluate_results(results, gt, check_every=check_every, success_m=success_m)
     atomic_write(results / "metrics.json", json.dumps(m, indent=2) + "\n")
     if m.get("partial"):

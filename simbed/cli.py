@@ -328,6 +328,19 @@ def render(
     """Write a PNG of the scene with the car and actors, or (--scan) of a recorded scan's range image."""
     import numpy as np
 
+    from rangemcl.errors import InputError
+
+    for option, value in (("--actors", actors), ("--variant", variant), ("--seed", seed)):
+        if value < 0:
+            raise InputError(f"{option} must be >= 0, got {value}")
+    probe = out.parent
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if out.is_dir() or not probe.is_dir():
+        why = (
+            "is a folder (give a PNG file name)" if out.is_dir() else f"cannot be written ({probe} is a file)"
+        )
+        raise InputError(f"--out {out}: {why}")
     if scan is not None:
         from rangemcl.dataset import load_sequence
         from rangemcl.plots import save_range_image_png
@@ -336,8 +349,6 @@ def render(
 
         seq = load_sequence(scan)
         if not 0 <= frame < len(seq):
-            from rangemcl.errors import InputError
-
             raise InputError(f"{scan}: frame {frame} out of range (the sequence has {len(seq)})")
         points = seq.scan(frame)
         sensor = seq.meta.get("sensor")

@@ -78,6 +78,8 @@ def record(
         raise InputError(f"actors must be >= 0, got {actors}")
     if variant < 0:
         raise InputError(f"variant must be >= 0, got {variant}")
+    if seed < 0:
+        raise InputError(f"seed must be >= 0, got {seed}")
     spec = load_spec(sensor)
     check_writable(out)
     rng = np.random.default_rng(seed)

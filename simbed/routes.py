@@ -232,7 +232,9 @@ def make_route(
         try:
             seed = int(name[5:]) if name.startswith("test-") else 1
         except ValueError:
-            raise InputError(f"route {name!r}: expected test-N with an integer N") from None
+            seed = -1
+        if seed < 0:
+            raise InputError(f"route {name!r}: expected test-N with an integer N >= 0")
         rng = np.random.default_rng(10_000 + seed)
         start = int(rng.integers(len(graph.nodes)))
         walk = random_walk(graph, rng, test_edges, start=start)

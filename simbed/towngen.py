@@ -953,6 +953,14 @@ def generate_town(
     name = out_xml.stem if name is None else str(name)
     if not name:
         raise InputError("town name must not be empty")
+    if out_xml.suffix.lower() != ".xml":
+        raise InputError(f"{out_xml}: a town is an MJCF file, give a name ending in .xml")
+    probe = out_xml.parent
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if out_xml.is_dir() or not probe.is_dir():
+        why = "is a folder" if out_xml.is_dir() else f"cannot be written ({probe} is a file)"
+        raise InputError(f"{out_xml}: {why}")
     rng = np.random.default_rng(seed)
 
     # roads and terrain

@@ -1,88 +1,788 @@
-"""Bad input across the CLIs (issue 18): each case is one line on stderr naming the problem, exit status
-2, and nothing created or changed. Cases that need no recording or map run here; those that do are in
-the end-to-end tests."""
+"""Bad input across the CLIs (issue 18): a table of cases, each one line on stderr naming the problem, exit
+status 2, and nothing created or changed.
+
+Every case runs in a copy of one small folder of good inputs (``BASE``: a three-frame sequence in the
+KITTI layout written by hand, a map from ``rangemcl import-mesh`` of a ground plane with a box, a
+localization results folder, a sensor spec, an MJCF scene, a waypoint file), changed by the case's own
+``files`` (the bad input: a path relative to the folder and its new text, bytes, ``None`` to delete it,
+``DIR`` for an empty folder, or a function of the path). ``test_the_good_inputs_are_good`` checks that the
+base inputs themselves are accepted, so each case fails because of its own input.
+
+The commands run in this process (``main()`` of ``simbed.cli`` or ``rangemcl.cli`` with ``sys.argv`` set,
+stderr, warnings and log records captured; the exit status from ``SystemExit``): a case costs what its
+command does before it refuses, not a Python start-up. ``test_in_process_equals_a_process`` checks on a
+few cases that a real process prints the same line with the same status.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import importlib
+import io
+import logging
+import shutil
+import signal
 import subprocess
 import sys
+import warnings
+from collections import Counter
+from pathlib import Path
 
+import numpy as np
 import pytest
 
-CONFIGS = {
-    "neg_tile.yaml": "tiles:\n  size_m: -5\n",
-    "zero_tile.yaml": "tiles:\n  size_m: 0\n",
-    "neg_depth.yaml": "poisson:\n  depth: -1\n",
-    "bad_quantile.yaml": "poisson:\n  density_quantile: 1.5\n",
-    "bad_gate.yaml": "refine:\n  gate_m: -1\n",
-    "bad_window.yaml": "motion:\n  calibration_window_m: 0\n",
-    "bad_settle.yaml": "motion:\n  calibration_settle_updates: -2\n",
-}
+# --- the good inputs -----------------------------------------------------------------------------------
 
-# (program and arguments; {d} is the test's folder) -> words the one line must hold
-CASES = [
-    ("rangemcl localize {d}/seq --map {d}/map --out {d}/o --frames -5", ["frames", "-5"]),
-    ("rangemcl localize {d}/seq --map {d}/map --out {d}/o --first-frame -1", ["first frame", "-1"]),
-    ("rangemcl localize {d}/seq --map {d}/map --out {d}/o --threads 0", ["threads"]),
-    ("rangemcl localize {d}/seq --map {d}/map --out {d}/o --particles 0", ["particles"]),
-    ("rangemcl localize {d}/seq --map {d}/map --out {d}/o --init-pose 1,2,0", ["tracking"]),
-    ("rangemcl localize {d}/seq --map {d}/map --out {d}/o --mode sideways", ["sideways"]),
-    ("rangemcl localize {d}/seq --map {d}/map --out {d}/a_file", ["a_file", "not a folder"]),
+N_FRAMES = 3
+N_POINTS = 300
+
+
+def pose_line(x: float, y: float = 0.0, z: float = 1.73) -> str:
+    return f"1 0 0 {x:g} 0 1 0 {y:g} 0 0 1 {z:g}\n"
+
+
+POSES = "".join(pose_line(k) for k in range(N_FRAMES))
+IDENTITY_12 = "1 0 0 0 0 1 0 0 0 0 1 0"
+SENSOR_YAML = Path(__file__).resolve().parents[1] / "rangemcl" / "presets" / "os1-64.yaml"
+RESULTS_SUMMARY = (
+    '{"first_frame": 0, "frames": 3, "converged_frame": 0, "convergence_frames": [0], '
+    '"recovery_frames": [], "calib_Tr": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}\n'
+)
+FRAMES_CSV = "frame,x,y,yaw,converged,recovered\n" + "".join(f"{k},{k},0,0,1,0\n" for k in range(3))
+OWN_SCENE = (
+    "<mujoco>\n<worldbody>\n"
+    '<geom name="floor" type="plane" size="60 60 0.1"/>\n'
+    '<geom name="block" type="box" size="2 2 2" pos="15 0 2"/>\n'
+    "</worldbody>\n</mujoco>\n"
+)
+
+
+def _write_base(d: Path) -> None:
+    """The good inputs (see the module docstring)."""
+    import trimesh
+
+    rng = np.random.default_rng(0)
+    seq = d / "seq"
+    (seq / "velodyne").mkdir(parents=True)
+    for k in range(N_FRAMES):
+        pts = np.column_stack([rng.uniform(-15, 15, (N_POINTS, 3)), rng.uniform(0, 1, N_POINTS)])
+        (seq / "velodyne" / f"{k:06d}.bin").write_bytes(pts.astype(np.float32).tobytes())
+    (seq / "poses.txt").write_text(POSES)
+    (seq / "odometry.txt").write_text(POSES)
+    (seq / "times.txt").write_text("".join(f"{0.1 * k:.9f}\n" for k in range(N_FRAMES)))
+    (seq / "calib.txt").write_text(f"Tr: {IDENTITY_12}\n")
+    (seq / "meta.yaml").write_text("scene: hand-written\ncomplete: true\n")
+
+    ground = trimesh.creation.box(extents=(80.0, 80.0, 1.0))
+    ground.apply_translation((0.0, 0.0, -0.5))
+    block = trimesh.creation.box(extents=(4.0, 4.0, 4.0))
+    block.apply_translation((15.0, 0.0, 2.0))
+    trimesh.util.concatenate([ground, block]).export(d / "ground.ply")
+    code, err = run_cli("rangemcl", ["import-mesh", str(d / "ground.ply"), "--out", str(d / "map")])
+    assert code in (0, None), err
+
+    res = d / "results"
+    res.mkdir()
+    (res / "summary.json").write_text(RESULTS_SUMMARY)
+    (res / "estimate_kitti.txt").write_text(POSES)
+    (res / "frames.csv").write_text(FRAMES_CSV)
+    (res / "config.yaml").write_text("{}\n")
+
+    (d / "sensor.yaml").write_text(SENSOR_YAML.read_text())
+    (d / "scene.xml").write_text(OWN_SCENE)
+    (d / "route.txt").write_text("0 0\n20 0\n")
+    (d / "a_file").write_text("not a folder\n")
+
+
+# --- how the bad inputs are made -----------------------------------------------------------------------
+
+DIR = object()  # an empty folder
+
+
+def cut(n_bytes: int):
+    """The file without its last ``n_bytes`` bytes."""
+
+    def apply(p: Path) -> None:
+        p.write_bytes(p.read_bytes()[:-n_bytes])
+
+    return apply
+
+
+def halve(p: Path) -> None:
+    p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])
+
+
+def append(text: str):
+    def apply(p: Path) -> None:
+        p.write_text(p.read_text() + text)
+
+    return apply
+
+
+def replace(old: str, new: str):
+    def apply(p: Path) -> None:
+        text = p.read_text()
+        assert old in text, (p, old)
+        p.write_text(text.replace(old, new, 1))
+
+    return apply
+
+
+def _apply(d: Path, files: dict) -> None:
+    for rel, what in files.items():
+        p = d / rel
+        if what is None:
+            if p.is_dir():
+                shutil.rmtree(p)
+            else:
+                p.unlink()
+        elif what is DIR:
+            if p.is_dir():
+                shutil.rmtree(p)
+            p.mkdir(parents=True)
+        elif callable(what):
+            what(p)
+        else:
+            p.parent.mkdir(parents=True, exist_ok=True)
+            if isinstance(what, bytes):
+                p.write_bytes(what)
+            else:
+                p.write_text(what)
+
+
+# --- the cases -----------------------------------------------------------------------------------------
+
+# Each case: (program and arguments, {d} is the case's folder; words the one stderr line must hold;
+# the bad input, as files changed in the folder). Every case exits with status 2 and changes nothing.
+LOC = "rangemcl localize {d}/seq --map {d}/map --out {d}/o"
+BUILD = "rangemcl build-map {d}/seq --out {d}/o"
+EVAL = "rangemcl evaluate {d}/results --gt {d}/seq/poses.txt"
+QUALITY = "rangemcl map-quality {d}/map --truth {d}/ground.ply"
+RECORD = "simbed record --scene town_small --route test --out {d}/o --frames 5"
+TRIALS = "simbed trials runtime --out {d}/t --map {d}/map --quick"
+CFG = "{d}/c.yaml"
+
+ELEVEN = pose_line(0) + pose_line(1).rsplit(" ", 1)[0] + "\n" + pose_line(2)
+NAN_POSE = pose_line(0) + pose_line(1).replace("1.73", "nan") + pose_line(2)
+
+CASES: list[tuple[str, list[str], dict]] = [
+    # --- command lines that do not parse
+    ("rangemcl locate {d}/seq", ["No such command", "locate", "'rangemcl --help'"], {}),
+    ("simbed recrod --out {d}/o", ["No such command", "recrod", "'simbed --help'"], {}),
+    (LOC + " --frames abc", ["--frames", "integer", "'rangemcl localize --help'"], {}),
+    ("rangemcl build-map {d}/seq", ["Missing option", "--out", "'rangemcl build-map --help'"], {}),
+    ("rangemcl import-mesh --out {d}/o", ["Missing argument", "'rangemcl import-mesh --help'"], {}),
+    ("rangemcl map-info {d}/map --bogus", ["No such option", "--bogus"], {}),
+    ("simbed record --out {d}/o --actors many", ["--actors", "integer", "'simbed record --help'"], {}),
+    ("simbed make-town --out {d}/t.xml --size big", ["--size", "'simbed make-town --help'"], {}),
+    ("simbed trials runtime --out {d}/t", ["Missing option", "--map"], {}),
+    # --- rangemcl sensors
+    ("rangemcl sensors os1-65", ["unknown LiDAR preset", "os1-65"], {}),
+    ("rangemcl sensors {d}/s.yaml", ["s.yaml", "malformed YAML", "line 2"], {"s.yaml": "name: x\n  a: [\n"}),
+    ("rangemcl sensors {d}/sensor.yaml", ["unknown key", "colour"], {"sensor.yaml": append("colour: red\n")}),
+    ("rangemcl sensors {d}/s.yaml", ["s.yaml", "mapping"], {"s.yaml": "- 1\n- 2\n"}),
     (
-        "rangemcl localize {d}/seq --map {d}/map --out {d}/o --config {d}/bad_gate.yaml",
+        "rangemcl sensors {d}/sensor.yaml",
+        ["columns must be >= 1", "0"],
+        {"sensor.yaml": replace("columns: 1024", "columns: 0")},
+    ),
+    (
+        "rangemcl sensors {d}/sensor.yaml",
+        ["columns must be an integer"],
+        {"sensor.yaml": replace("columns: 1024", "columns: many")},
+    ),
+    (
+        "rangemcl sensors {d}/sensor.yaml",
+        ["dropout_prob", "[0, 1)"],
+        {"sensor.yaml": replace("dropout_prob: 0.0", "dropout_prob: 1.5")},
+    ),
+    (
+        "rangemcl sensors {d}/sensor.yaml",
+        ["max_range_m", "min_range_m"],
+        {"sensor.yaml": replace("max_range_m: 120.0", "max_range_m: 0.1")},
+    ),
+    (
+        "rangemcl sensors {d}/sensor.yaml",
+        ["rotation_hz must be > 0"],
+        {"sensor.yaml": replace("rotation_hz: 10.0", "rotation_hz: -10")},
+    ),
+    ("rangemcl sensors {d}/missing.yaml", ["missing.yaml"], {}),
+    # --- rangemcl sweep
+    ("rangemcl sweep --sensor nonsense --out {d}/o", ["unknown LiDAR preset", "nonsense"], {}),
+    ("rangemcl sweep --sensor {d}/s.yaml --out {d}/o", ["s.yaml", "malformed YAML"], {"s.yaml": "a: [\n"}),
+    ("rangemcl sweep --out {d}/o --threads -1", ["--threads", "-1"], {}),
+    ("rangemcl sweep --out {d}/o --device nonsense", ["device", "nonsense"], {}),
+    ("rangemcl sweep --out {d}/o --seed -1", ["--seed", "-1"], {}),
+    ("rangemcl sweep --out {d}/a_file", ["a_file", "not a folder"], {}),
+    # --- rangemcl build-map: the sequence
+    ("rangemcl build-map {d}/nope --out {d}/o", ["nope", "no such sequence folder"], {}),
+    ("rangemcl build-map {d}/a_file --out {d}/o", ["a_file", "not a folder"], {}),
+    (BUILD, ["seq", "no velodyne/ folder"], {"seq/velodyne": None}),
+    (BUILD, ["velodyne", "no .bin scans"], {"seq/velodyne": DIR}),
+    (BUILD, ["000001.bin", "missing"], {"seq/velodyne/000001.bin": None}),
+    (BUILD, ["000001.bin", "truncated", "16-byte"], {"seq/velodyne/000001.bin": cut(6)}),
+    (BUILD, ["poses.txt", "required"], {"seq/poses.txt": None}),
+    (BUILD, ["poses.txt", "0 lines for 3 scans"], {"seq/poses.txt": ""}),
+    (BUILD, ["poses.txt", "line 2", "11 numbers"], {"seq/poses.txt": ELEVEN}),
+    (BUILD, ["poses.txt", "line 2", "NaN"], {"seq/poses.txt": NAN_POSE}),
+    (
+        BUILD,
+        ["poses.txt", "line 1", "'one'", "not a number"],
+        {"seq/poses.txt": POSES.replace("1", "one", 1)},
+    ),
+    (
+        BUILD,
+        ["poses.txt", "line 1", "orthonormal"],
+        {"seq/poses.txt": POSES.replace("1 0 0", "2 0 0", 1)},
+    ),
+    (BUILD, ["times.txt", "2 lines for 3 scans"], {"seq/times.txt": "0.0\n0.1\n"}),
+    (BUILD, ["times.txt", "line 3", "before the previous"], {"seq/times.txt": "0.0\n0.2\n0.1\n"}),
+    (BUILD, ["odometry.txt", "line 2", "NaN"], {"seq/odometry.txt": NAN_POSE}),
+    (BUILD, ["calib.txt", "11 numbers"], {"seq/calib.txt": "Tr: 1 0 0 0 0 1 0 0 0 0 1\n"}),
+    (BUILD, ["calib.txt", "no 'Tr:' line"], {"seq/calib.txt": f"P0: {IDENTITY_12}\n"}),
+    (BUILD, ["meta.yaml", "malformed YAML"], {"seq/meta.yaml": "scene: [\n"}),
+    (BUILD, ["meta.yaml", "mapping"], {"seq/meta.yaml": "- complete\n"}),
+    # --- rangemcl build-map: the config and options
+    (BUILD + " --config {d}/nope.yaml", ["nope.yaml", "no such config file"], {}),
+    (BUILD + " --config {d}/seq", ["seq", "cannot read config file"], {}),
+    (
+        BUILD + " --config " + CFG,
+        ["c.yaml", "malformed YAML", "line 2"],
+        {"c.yaml": "tiles:\n  size_m: 5: 6\n"},
+    ),
+    (BUILD + " --config " + CFG, ["c.yaml", "tiles.sise_m", "size_m"], {"c.yaml": "tiles:\n  sise_m: 5\n"}),
+    (BUILD + " --config " + CFG, ["c.yaml", "tiles.size_m", "number"], {"c.yaml": "tiles:\n  size_m: big\n"}),
+    (BUILD + " --config " + CFG, ["c.yaml", "tiles", "mapping"], {"c.yaml": "tiles: [1, 2]\n"}),
+    (BUILD + " --config " + CFG, ["c.yaml", "top level", "mapping"], {"c.yaml": "- tiles\n"}),
+    (BUILD + " --config " + CFG, ["c.yaml", "tiles.size_m"], {"c.yaml": "tiles:\n  size_m: -5\n"}),
+    (BUILD + " --config " + CFG, ["c.yaml", "tiles.size_m"], {"c.yaml": "tiles:\n  size_m: 0\n"}),
+    (BUILD + " --config " + CFG, ["c.yaml", "poisson.depth"], {"c.yaml": "poisson:\n  depth: -1\n"}),
+    (BUILD + " --config " + CFG, ["poisson.depth", "16"], {"c.yaml": "poisson:\n  depth: 17\n"}),
+    (BUILD + " --config " + CFG, ["density_quantile"], {"c.yaml": "poisson:\n  density_quantile: 1.5\n"}),
+    (BUILD + " --config " + CFG, ["scans.every_nth"], {"c.yaml": "scans:\n  every_nth: 0\n"}),
+    (BUILD + " --config " + CFG, ["scans.max_range_m"], {"c.yaml": "scans:\n  max_range_m: -40\n"}),
+    (BUILD + " --config " + CFG, ["scans.min_range_m"], {"c.yaml": "scans:\n  min_range_m: 50\n"}),
+    (
+        BUILD + " --config " + CFG,
+        ["ground.max_angle_deg", "90"],
+        {"c.yaml": "ground:\n  max_angle_deg: 95\n"},
+    ),
+    (BUILD + " --config " + CFG, ["ground.z_margin_m"], {"c.yaml": "ground:\n  z_margin_m: .nan\n"}),
+    (BUILD + " --config " + CFG, ["projection.width"], {"c.yaml": "projection:\n  width: 0\n"}),
+    (
+        BUILD + " --config " + CFG,
+        ["projection.fov_down_deg"],
+        {"c.yaml": "projection:\n  fov_down_deg: 10\n"},
+    ),
+    (BUILD + " --config " + CFG, ["simplify.voxel_m"], {"c.yaml": "simplify:\n  voxel_m: 0\n"}),
+    (
+        BUILD + " --config " + CFG,
+        ["simplify.smooth_iterations"],
+        {"c.yaml": "simplify:\n  smooth_iterations: -1\n"},
+    ),
+    (BUILD + " --config " + CFG, ["tiles.margin_m"], {"c.yaml": "tiles:\n  margin_m: -1\n"}),
+    (BUILD + " --config " + CFG, ["c.yaml", "workers"], {"c.yaml": "workers: -2\n"}),
+    (
+        BUILD + " --config " + CFG,
+        ["projection.height x projection.width"],
+        {"c.yaml": "projection:\n  height: 100000000\n"},
+    ),
+    (BUILD + " --workers -3", ["workers"], {}),
+    (
+        BUILD,
+        ["seq", "no scan has a valid point"],
+        {f"seq/velodyne/{k:06d}.bin": b"" for k in range(N_FRAMES)},
+    ),
+    ("rangemcl build-map {d}/seq --out {d}/a_file", ["a_file", "not a folder"], {}),
+    (BUILD, ["o", "holds no map", "choose another --out"], {"o/notes.txt": "mine\n"}),
+    ("rangemcl build-map {d}/seq --out {d}/map", ["map", "--overwrite"], {}),
+    (BUILD + " --resume", ["nothing to resume"], {}),
+    ("rangemcl build-map {d}/seq --out {d}/map --resume --overwrite", ["--resume", "--overwrite"], {}),
+    # --- rangemcl import-mesh
+    ("rangemcl import-mesh {d}/nope.ply --out {d}/o", ["nope.ply", "does not exist"], {}),
+    ("rangemcl import-mesh {d}/seq --out {d}/o", ["seq", "not a file"], {}),
+    ("rangemcl import-mesh {d}/m.ply --out {d}/o", ["m.ply"], {"m.ply": "hello, not a mesh\n"}),
+    (
+        "rangemcl import-mesh {d}/m.obj --out {d}/o",
+        ["m.obj", "no triangles"],
+        {"m.obj": "hello, not a mesh\n"},
+    ),
+    ("rangemcl import-mesh {d}/m.ply --out {d}/o", ["m.ply"], {"m.ply": b""}),
+    ("rangemcl import-mesh {d}/m.obj --out {d}/o", ["m.obj", "no triangles"], {"m.obj": b""}),
+    ("rangemcl import-mesh {d}/ground.ply --out {d}/o", ["ground.ply"], {"ground.ply": halve}),
+    (
+        "rangemcl import-mesh {d}/m.obj --out {d}/o",
+        ["m.obj", "NaN"],
+        {"m.obj": "v 0 0 0\nv 1 0 0\nv nan 1 0\nv 1 1 0\nf 1 2 3\nf 2 4 3\n"},
+    ),
+    (
+        "rangemcl import-mesh {d}/m.obj --out {d}/o",
+        ["m.obj", "no triangles"],
+        {"m.obj": "v 0 0 0\nv 1 0 0\nv 0 1 0\n"},
+    ),
+    (
+        "rangemcl import-mesh {d}/m.obj --out {d}/o",
+        ["m.obj", "degenerate"],
+        {"m.obj": "v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n"},
+    ),
+    (
+        "rangemcl import-mesh {d}/m.obj --out {d}/o",
+        ["m.obj", "cannot read as a triangle mesh", "out of bounds"],
+        {"m.obj": "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n"},
+    ),
+    ("rangemcl import-mesh {d}/ground.ply --out {d}/o --tile-size 0", ["tile_size_m", "0"], {}),
+    ("rangemcl import-mesh {d}/ground.ply --out {d}/o --tile-size -5", ["tile_size_m", "-5"], {}),
+    ("rangemcl import-mesh {d}/ground.ply --out {d}/o --tile-size nan", ["tile_size_m", "nan"], {}),
+    ("rangemcl import-mesh {d}/ground.ply --out {d}/a_file", ["a_file", "not a folder"], {}),
+    ("rangemcl import-mesh {d}/ground.ply --out {d}/seq", ["seq", "holds no map"], {}),
+    ("rangemcl import-mesh {d}/ground.ply --out {d}/map", ["map", "--overwrite"], {}),
+    # --- rangemcl map-info: bad map folders
+    ("rangemcl map-info {d}/nope", ["nope", "does not exist"], {}),
+    ("rangemcl map-info {d}/a_file", ["a_file", "not a folder"], {}),
+    ("rangemcl map-info {d}/map", ["map.yaml", "missing"], {"map/map.yaml": None}),
+    ("rangemcl map-info {d}/map", ["mesh.ply", "missing"], {"map/mesh.ply": None}),
+    ("rangemcl map-info {d}/map", ["mesh.ply", "truncated"], {"map/mesh.ply": cut(10)}),
+    ("rangemcl map-info {d}/map", ["mesh.ply", "not a PLY file"], {"map/mesh.ply": "solid nothing\n"}),
+    ("rangemcl map-info {d}/map", ["tiles.npz", "cannot read"], {"map/tiles.npz": b"PK\x03\x04 broken"}),
+    ("rangemcl map-info {d}/map", ["ground.npz", "cannot read"], {"map/ground.npz": halve}),
+    ("rangemcl map-info {d}/map", ["map.yaml", "malformed YAML"], {"map/map.yaml": append("counts: [\n")}),
+    ("rangemcl map-info {d}/map", ["map.yaml", "mapping"], {"map/map.yaml": "- 1\n"}),
+    (
+        "rangemcl map-info {d}/map",
+        ["mesh.ply", "24 triangles", "25"],
+        {"map/map.yaml": replace("triangles: 24", "triangles: 25")},
+    ),
+    ("rangemcl map-info {d}/map", ["drive.npz", "cannot read"], {"map/drive.npz": b"not an npz file"}),
+    (
+        "rangemcl map-info {d}/map",
+        ["map.yaml", "format_version"],
+        {"map/map.yaml": replace("format_version: 1", "format_version: 99")},
+    ),
+    # --- rangemcl map-quality
+    ("rangemcl map-quality {d}/nope --truth {d}/ground.ply", ["nope", "does not exist"], {}),
+    (QUALITY, ["tiles.npz", "cannot read"], {"map/tiles.npz": b"garbage"}),
+    (QUALITY, ["mesh.ply", "truncated"], {"map/mesh.ply": halve}),
+    ("rangemcl map-quality {d}/map --truth {d}/nope.ply", ["nope.ply", "does not exist"], {}),
+    ("rangemcl map-quality {d}/map --truth {d}/m.obj", ["m.obj", "no triangles"], {"m.obj": "not a mesh\n"}),
+    (QUALITY + " --tolerance 0", ["--tolerance", "0"], {}),
+    (QUALITY + " --tolerance -1", ["--tolerance", "-1"], {}),
+    (QUALITY + " --reference {d}/nope", ["nope", "no such sequence folder"], {}),
+    (QUALITY + " --reference {d}/seq", ["poses.txt", "required"], {"seq/poses.txt": None}),
+    (QUALITY + " --reference {d}/seq", ["000000.bin", "truncated"], {"seq/velodyne/000000.bin": cut(3)}),
+    (QUALITY + " --json {d}/nodir/q.json", ["--json", "nodir"], {}),
+    (QUALITY + " --json {d}/seq", ["--json", "seq"], {}),
+    # --- rangemcl localize: options
+    (LOC + " --frames -5", ["frames", "-5"], {}),
+    (LOC + " --frames 0", ["frames", "0"], {}),
+    (LOC + " --first-frame -1", ["first frame", "-1"], {}),
+    (LOC + " --first-frame 3", ["first frame 3", "out of range"], {}),
+    (LOC + " --threads 0", ["threads"], {}),
+    (LOC + " --particles 0", ["particles"], {}),
+    (LOC + " --particles -100", ["particles", "-100"], {}),
+    (LOC + " --seed -1", ["--seed", "-1"], {}),
+    (LOC + " --device nonsense", ["device", "nonsense"], {}),
+    (LOC + " --mode sideways", ["sideways"], {}),
+    (LOC + " --init-pose 1,2,0", ["tracking"], {}),
+    (LOC + " --mode tracking --init-pose 1,2", ["--init-pose", "three numbers"], {}),
+    (LOC + " --mode tracking --init-pose a,b,c", ["--init-pose", "three numbers"], {}),
+    (LOC + " --mode tracking --init-pose 1,2,nan", ["--init-pose", "finite"], {}),
+    (LOC + " --mode tracking --init-pose 5000,0,0", ["5000", "map"], {}),
+    # --- rangemcl localize: the sequence
+    ("rangemcl localize {d}/nope --map {d}/map --out {d}/o", ["nope", "no such sequence folder"], {}),
+    ("rangemcl localize {d}/a_file --map {d}/map --out {d}/o", ["a_file", "not a folder"], {}),
+    (LOC, ["poses.txt", "0 lines for 3 scans"], {"seq/poses.txt": ""}),
+    (LOC, ["poses.txt", "line 2", "11 numbers"], {"seq/poses.txt": ELEVEN}),
+    (LOC, ["poses.txt", "NaN"], {"seq/poses.txt": NAN_POSE}),
+    (LOC, ["odometry.txt", "NaN"], {"seq/odometry.txt": NAN_POSE}),
+    (LOC, ["odometry.txt", "--odometry-from-poses"], {"seq/odometry.txt": None}),
+    (LOC, ["times.txt", "2 lines for 3 scans"], {"seq/times.txt": "0.0\n0.1\n"}),
+    (LOC, ["outside the map", "frame"], {"seq/poses.txt": POSES.replace(" 0 1 0 0 ", " 0 1 0 5000 ")}),
+    # --- rangemcl localize: the map
+    ("rangemcl localize {d}/seq --map {d}/nope --out {d}/o", ["nope", "does not exist"], {}),
+    ("rangemcl localize {d}/seq --map {d}/a_file --out {d}/o", ["a_file", "not a folder"], {}),
+    (LOC, ["map.yaml", "missing"], {"map/map.yaml": None}),
+    (LOC, ["mesh.ply", "truncated"], {"map/mesh.ply": halve}),
+    (LOC, ["tiles.npz", "cannot read"], {"map/tiles.npz": b"PK\x05\x06"}),
+    # --- rangemcl localize: the config
+    (LOC + " --config " + CFG, ["c.yaml", "malformed YAML"], {"c.yaml": "refine: {gate_m: \n"}),
+    (LOC + " --config " + CFG, ["c.yaml", "refine.gate_mm", "gate_m"], {"c.yaml": "refine:\n  gate_mm: 1\n"}),
+    (
+        LOC + " --config " + CFG,
+        ["c.yaml", "observation.rays", "integer"],
+        {"c.yaml": "observation:\n  rays: 1.5\n"},
+    ),
+    (LOC + " --config " + CFG, ["c.yaml", "observation", "mapping"], {"c.yaml": "observation: [range]\n"}),
+    (
+        LOC + " --config {d}/bad_gate.yaml",
         ["bad_gate.yaml", "refine.gate_m"],
+        {"bad_gate.yaml": "refine:\n  gate_m: -1\n"},
     ),
+    (LOC + " --config " + CFG, ["calibration_window_m"], {"c.yaml": "motion:\n  calibration_window_m: 0\n"}),
     (
-        "rangemcl localize {d}/seq --map {d}/map --out {d}/o --config {d}/bad_window.yaml",
-        ["calibration_window_m"],
-    ),
-    (
-        "rangemcl localize {d}/seq --map {d}/map --out {d}/o --config {d}/bad_settle.yaml",
+        LOC + " --config " + CFG,
         ["calibration_settle_updates"],
+        {"c.yaml": "motion:\n  calibration_settle_updates: -2\n"},
     ),
-    ("rangemcl build-map {d}/seq --out {d}/o --config {d}/neg_tile.yaml", ["neg_tile.yaml", "tiles.size_m"]),
+    (LOC + " --config " + CFG, ["observation.rays"], {"c.yaml": "observation:\n  rays: 0\n"}),
+    (LOC + " --config " + CFG, ["particles.global_count"], {"c.yaml": "particles:\n  global_count: -10\n"}),
+    (LOC + " --config " + CFG, ["init.prior_share", "[0, 1]"], {"c.yaml": "init:\n  prior_share: 1.5\n"}),
     (
-        "rangemcl build-map {d}/seq --out {d}/o --config {d}/zero_tile.yaml",
-        ["zero_tile.yaml", "tiles.size_m"],
+        LOC + " --config " + CFG,
+        ["convergence.min_inliers"],
+        {"c.yaml": "convergence:\n  min_inliers: -0.5\n"},
+    ),
+    (LOC + " --config " + CFG, ["resample_neff_ratio"], {"c.yaml": "particles:\n  resample_neff_ratio: 0\n"}),
+    (
+        LOC + " --config " + CFG,
+        ["convergence.method", "fancy"],
+        {"c.yaml": "convergence:\n  method: fancy\n"},
     ),
     (
-        "rangemcl build-map {d}/seq --out {d}/o --config {d}/neg_depth.yaml",
-        ["neg_depth.yaml", "poisson.depth"],
+        LOC + " --config " + CFG,
+        ["observation.model", "nonsense"],
+        {"c.yaml": "observation:\n  model: nonsense\n"},
     ),
-    ("rangemcl build-map {d}/seq --out {d}/o --config {d}/bad_quantile.yaml", ["density_quantile"]),
-    ("rangemcl build-map {d}/seq --out {d}/o --workers -3", ["workers"]),
-    ("simbed record --scene town_small --route test --out {d}/o --actors -1", ["actors", "-1"]),
-    ("simbed record --scene town_small --route test --out {d}/o --frames 0", ["frames"]),
-    ("simbed render --scene {d}/bad.xml --out {d}/o.png", ["bad.xml", "Line number=3"]),
+    (LOC + " --config " + CFG, ["sensor_height_m"], {"c.yaml": "sensor_height_m: 0\n"}),
+    (
+        LOC + " --config " + CFG,
+        ["observation.ground_share", "[0, 1]"],
+        {"c.yaml": "observation:\n  ground_share: 2\n"},
+    ),
+    (
+        LOC + " --config " + CFG,
+        ["observation.ray_sampling", "diagonal"],
+        {"c.yaml": "observation:\n  ray_sampling: diagonal\n"},
+    ),
+    (LOC + " --config " + CFG, ["observation.min_range_m"], {"c.yaml": "observation:\n  min_range_m: 50\n"}),
+    (
+        LOC + " --config " + CFG,
+        ["c.yaml", "duplicate key 'refine'"],
+        {"c.yaml": "refine:\n  gate_m: 1\nrefine:\n  gate_m: 2\n"},
+    ),
+    (LOC + " --config " + CFG, ["c.yaml", "not UTF-8"], {"c.yaml": b"\xff\xfe binary"}),
+    # --- rangemcl localize: the output folder
+    ("rangemcl localize {d}/seq --map {d}/map --out {d}/a_file", ["a_file", "not a folder"], {}),
+    ("rangemcl localize {d}/seq --map {d}/map --out {d}/seq", ["seq", "holds no localization results"], {}),
+    ("rangemcl localize {d}/seq --map {d}/map --out {d}/results", ["results", "--overwrite"], {}),
+    (LOC + " --resume", ["holds no interrupted localization"], {}),
+    (
+        "rangemcl localize {d}/seq --map {d}/map --out {d}/results --resume --overwrite",
+        ["--resume", "--overwrite"],
+        {},
+    ),
+    (
+        "rangemcl localize {d}/seq --map {d}/map --out {d}/results",
+        ["interrupted localization", "--resume"],
+        {"results/.resume": DIR},
+    ),
+    # --- rangemcl evaluate
+    ("rangemcl evaluate {d}/nope --gt {d}/seq/poses.txt", ["summary.json", "missing"], {}),
+    ("rangemcl evaluate {d}/seq --gt {d}/seq/poses.txt", ["summary.json", "missing", "results folder"], {}),
+    (EVAL, ["summary.json", "cannot read"], {"results/summary.json": "{not json\n"}),
+    (EVAL, ["estimate_kitti.txt", "line 2", "11 numbers"], {"results/estimate_kitti.txt": ELEVEN}),
+    (
+        EVAL,
+        ["frames.csv", "no frame was finished"],
+        {"results/summary.json": None, "results/frames.csv": FRAMES_CSV.splitlines()[0] + "\n"},
+    ),
+    ("rangemcl evaluate {d}/results --gt {d}/nope.txt", ["nope.txt", "no such file"], {}),
+    (EVAL, ["poses.txt", "line 2", "11 numbers"], {"seq/poses.txt": ELEVEN}),
+    (EVAL, ["poses.txt", "NaN"], {"seq/poses.txt": NAN_POSE}),
+    (EVAL, ["poses.txt", "has 2 poses"], {"seq/poses.txt": pose_line(0) + pose_line(1)}),
+    (EVAL + " --check-every 0", ["--check-every", "0"], {}),
+    (EVAL + " --check-every -5", ["--check-every", "-5"], {}),
+    (EVAL + " --success-m 0", ["--success-m", "0"], {}),
+    (EVAL + " --success-m nan", ["--success-m", "nan"], {}),
+    # --- simbed make-town
+    ("simbed make-town --out {d}/t.xml --size 50", ["size_m", "50"], {}),
+    ("simbed make-town --out {d}/t.xml --size -400", ["size_m", "-400"], {}),
+    ("simbed make-town --out {d}/t.xml --size nan", ["size_m", "nan"], {}),
+    ("simbed make-town --out {d}/t.xml --seed -1", ["seed", "-1"], {}),
+    ("simbed make-town --out {d}/t.xml --variants -1", ["variants", "-1"], {}),
+    ("simbed make-town --out {d}/seq --size 120", ["seq", ".xml"], {}),
+    ("simbed make-town --out {d}/t.xml --size 120", ["t.xml", "is a folder"], {"t.xml": DIR}),
+    ("simbed make-town --out {d}/a_file/t.xml --size 120", ["a_file", "is a file"], {}),
+    # --- simbed record
+    ("simbed record --scene town_small --route test --out {d}/o --actors -1", ["actors", "-1"], {}),
+    ("simbed record --scene town_small --route test --out {d}/o --frames 0", ["frames"], {}),
+    (RECORD.replace("--frames 5", "--frames -5"), ["frames", "-5"], {}),
+    (RECORD + " --variant -1", ["variant", "-1"], {}),
+    (RECORD + " --variant 7", ["no variant 7"], {}),
+    (RECORD + " --seed -1", ["seed", "-1"], {}),
+    (RECORD + " --device nonsense", ["device", "nonsense"], {}),
+    (RECORD + " --sensor nonsense", ["unknown LiDAR preset", "nonsense"], {}),
+    (
+        RECORD + " --sensor {d}/sensor.yaml",
+        ["sensor.yaml", "columns"],
+        {"sensor.yaml": replace("columns: 1024", "columns: -1")},
+    ),
+    ("simbed record --scene nonsense --out {d}/o", ["nonsense.xml", "no such scene file"], {}),
+    (
+        "simbed record --scene {d}/bad.xml --out {d}/o",
+        ["bad.xml", "malformed MJCF"],
+        {"bad.xml": "<mujoco><worldbody>\n"},
+    ),
+    (
+        "simbed record --scene {d}/bad.xml --route {d}/route.txt --out {d}/o",
+        ["bad.xml", "does not compile"],
+        {
+            "bad.xml": '<mujoco><worldbody><geom type="box" size="1 1 1" material="nope"/>'
+            "</worldbody></mujoco>"
+        },
+    ),
+    (
+        "simbed record --scene {d}/bad.xml --route {d}/route.txt --out {d}/o",
+        ["bad.xml", "missing.stl"],
+        {
+            "bad.xml": '<mujoco><asset><mesh name="m" file="missing.stl"/></asset>'
+            '<worldbody><geom type="mesh" mesh="m"/></worldbody></mujoco>'
+        },
+    ),
+    (RECORD.replace("--route test", "--route sideways"), ["unknown route", "sideways"], {}),
+    (RECORD.replace("--route test", "--route test-x"), ["test-x", "integer"], {}),
+    (RECORD.replace("--route test", "--route test--3"), ["test--3", "N >= 0"], {}),
+    (
+        RECORD.replace("--route test", "--route {d}/route.txt"),
+        ["route.txt:2", "'x y'"],
+        {"route.txt": "0 0\n10 north\n"},
+    ),
+    (
+        RECORD.replace("--route test", "--route {d}/route.txt"),
+        ["route.txt", "at least 2 waypoints"],
+        {"route.txt": "0 0\n"},
+    ),
+    (RECORD.replace("--route test", "--route {d}/nope.txt"), ["nope.txt", "cannot read waypoints"], {}),
+    (RECORD + " --loop", ["--loop", "waypoint"], {}),
+    ("simbed record --scene {d}/scene.xml --route mapping --out {d}/o", ["scene.xml", "road network"], {}),
+    (
+        "simbed record --scene {d}/scene.xml --route {d}/route.txt --out {d}/o",
+        ["route.txt:1", "the ground steps", "0.00 m to 4.00 m"],
+        {"route.txt": "0 0\n30 0\n"},
+    ),
+    (
+        RECORD + " --actor-paths {d}/actors.yaml",
+        ["actors.yaml", "kind 'horse'"],
+        {"actors.yaml": "actors:\n  - kind: horse\n    waypoints: [[0, 0], [9, 0]]\n"},
+    ),
+    (
+        RECORD + " --actor-paths {d}/actors.yaml",
+        ["actors.yaml", "non-empty list 'actors'"],
+        {"actors.yaml": "actors: []\n"},
+    ),
+    ("simbed record --scene town_small --route test --out {d}/a_file", ["a_file", "not a folder"], {}),
+    ("simbed record --scene town_small --route test --out {d}/results", ["results", "--overwrite"], {}),
+    # --- simbed export-mesh
+    ("simbed export-mesh --scene nonsense --out {d}/m.ply", ["nonsense.xml", "no such scene file"], {}),
+    (
+        "simbed export-mesh --scene {d}/bad.xml --out {d}/m.ply",
+        ["bad.xml", "malformed MJCF"],
+        {"bad.xml": "<mujoco>\n"},
+    ),
+    ("simbed export-mesh --scene town_small --variant 5 --out {d}/m.ply", ["no variant 5"], {}),
+    ("simbed export-mesh --scene town_small --variant -1 --out {d}/m.ply", ["variant", "-1"], {}),
+    ("simbed export-mesh --scene {d}/scene.xml --out {d}/nodir/m.ply", ["nodir"], {}),
+    ("simbed export-mesh --scene {d}/scene.xml --out {d}/seq", ["seq"], {}),
+    # --- simbed demo
+    ("simbed demo --out {d}/o --test-frames 0", ["--test-frames", "0"], {}),
+    ("simbed demo --out {d}/o --particles 0", ["--particles", "0"], {}),
+    ("simbed demo --out {d}/o --seed -1", ["--seed", "-1"], {}),
+    ("simbed demo --out {d}/o --device nonsense", ["device", "nonsense"], {}),
+    ("simbed demo --out {d}/a_file", ["a_file", "not a folder"], {}),
+    # --- simbed trials
+    ("simbed trials sideways --out {d}/t --map {d}/map", ["suite", "sideways"], {}),
+    (TRIALS + " --map {d}/nope", ["nope", "does not exist"], {}),
+    (TRIALS.replace("runtime", "particles") + " --models rang", ["observation model", "rang"], {}),
+    (TRIALS.replace("runtime", "particles") + " --counts 100,x", ["--counts", "100,x"], {}),
+    (TRIALS.replace("runtime", "particles") + " --counts 0,500", ["particle counts", "0"], {}),
+    (
+        TRIALS.replace("runtime", "sensors") + " --sensors os1-64,nonsense",
+        ["unknown LiDAR preset", "nonsense"],
+        {},
+    ),
+    (TRIALS + " --sensor nonsense", ["unknown LiDAR preset", "nonsense"], {}),
+    (TRIALS + " --workers -1", ["--workers", "-1"], {}),
+    (TRIALS + " --backend carrier-pigeon", ["backend", "carrier-pigeon"], {}),
+    (TRIALS + " --frames 0", ["--frames", "0"], {}),
+    (TRIALS + " --starts 0", ["--starts", "0"], {}),
+    (TRIALS + " --drive-frames -1", ["--drive-frames", "-1"], {}),
+    (TRIALS + " --actors -1", ["--actors", "-1"], {}),
+    (TRIALS + " --variant -1", ["--variant", "-1"], {}),
+    (TRIALS + " --device nonsense", ["device", "nonsense"], {}),
+    (TRIALS + " --scene nonsense", ["nonsense", "no such scene file"], {}),
+    (TRIALS + " --route sideways", ["unknown route", "sideways"], {}),
+    (TRIALS + " --config " + CFG, ["c.yaml", "malformed YAML"], {"c.yaml": "a: [\n"}),
+    (
+        TRIALS + " --config " + CFG,
+        ["c.yaml", "particles.globl_count"],
+        {"c.yaml": "particles:\n  globl_count: 5\n"},
+    ),
+    (TRIALS + " --compare default", ["--compare", "--report-only"], {}),
+    (TRIALS + " --report-only", ["results.csv", "no finished trial"], {}),
+    ("simbed trials runtime --out {d}/a_file --map {d}/map --quick", ["a_file", "not a folder"], {}),
+    # --- simbed render
+    (
+        "simbed render --scene {d}/bad.xml --out {d}/o.png",
+        ["bad.xml", "Line number=3"],
+        {"bad.xml": '<mujoco>\n<worldbody>\n<geom type="box" size="1 1"\n</worldbody></mujoco>\n'},
+    ),
+    ("simbed render --scene nonsense --out {d}/o.png", ["nonsense.xml", "no such scene file"], {}),
+    ("simbed render --scene town_small --camera nope --out {d}/o.png", ["camera", "nope"], {}),
+    (
+        "simbed render --scene {d}/scene.xml --actors 2 --out {d}/o.png",
+        ["scene.xml", "actors", "town with roads"],
+        {},
+    ),
+    ("simbed render --scene town_small --variant 9 --out {d}/o.png", ["no variant 9"], {}),
+    ("simbed render --scene town_small --actors -1 --out {d}/o.png", ["actors", "-1"], {}),
+    ("simbed render --scene town_small --seed -1 --out {d}/o.png", ["--seed", "-1"], {}),
+    ("simbed render --scan {d}/nope --out {d}/o.png", ["nope", "no such sequence folder"], {}),
+    ("simbed render --scan {d}/seq --frame 3 --out {d}/o.png", ["frame 3", "out of range"], {}),
+    ("simbed render --scan {d}/seq --frame -1 --out {d}/o.png", ["frame -1", "out of range"], {}),
+    (
+        "simbed render --scan {d}/seq --frame 1 --out {d}/o.png",
+        ["000001.bin", "truncated"],
+        {"seq/velodyne/000001.bin": cut(1)},
+    ),
+    ("simbed render --scan {d}/seq --out {d}/seq", ["seq", "is a folder"], {}),
+    ("simbed render --scene town_small --out {d}/a_file/o.png", ["a_file", "is a file"], {}),
 ]
 
 
-def _tree(root):
-    return sorted((str(p.relative_to(root)), p.stat().st_mtime_ns) for p in root.rglob("*"))
+# --- running a command in this process -------------------------------------------------------------------
+
+# the warnings a plain ``python`` does not print (its default filters)
+_SILENT = (DeprecationWarning, PendingDeprecationWarning, ImportWarning, ResourceWarning)
 
 
-@pytest.fixture
-def folder(tmp_path):
-    for name, text in CONFIGS.items():
-        (tmp_path / name).write_text(text)
-    (tmp_path / "a_file").write_text("not a folder")
-    (tmp_path / "bad.xml").write_text(
-        '<mujoco>\n<worldbody>\n<geom type="box" size="1 1"\n</worldbody></mujoco>\n'
-    )
-    return tmp_path
+def run_cli(prog: str, args: list[str]) -> tuple[int | None, str]:
+    """``prog``'s ``main()`` with ``args``: (exit status, what a process would have printed on stderr:
+    its own lines, printed warnings and log records). Any other exception propagates (a traceback)."""
+    cli = importlib.import_module(f"{prog}.cli")
+    err = io.StringIO()
+    handler = logging.StreamHandler(err)
+    handler.setLevel(logging.WARNING)
+    root = logging.getLogger()
+    argv, sigterm = sys.argv, signal.getsignal(signal.SIGTERM)
+    sys.argv = [prog, *args]
+    root.addHandler(handler)
+    code: int | str | None = 0
+    try:
+        with (
+            contextlib.redirect_stderr(err),
+            contextlib.redirect_stdout(io.StringIO()),
+            warnings.catch_warnings(record=True) as caught,
+        ):
+            warnings.simplefilter("always")
+            try:
+                cli.main()
+            except SystemExit as exc:
+                code = exc.code
+    finally:
+        sys.argv = argv
+        signal.signal(signal.SIGTERM, sigterm)
+        root.removeHandler(handler)
+    shown = [f"{w.filename}:{w.lineno}: {w.category.__name__}: {w.message}" for w in caught]
+    shown = [s for s, w in zip(shown, caught, strict=True) if not issubclass(w.category, _SILENT)]
+    return code, err.getvalue() + "".join(f"{s}\n" for s in shown)
+
+
+def _tree(root: Path):
+    return sorted((str(p.relative_to(root)), p.stat().st_mtime_ns, p.stat().st_size) for p in root.rglob("*"))
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("good_inputs")
+    _write_base(d)
+    return d
+
+
+def _case_folder(base: Path, tmp_path: Path, files: dict) -> Path:
+    d = tmp_path / "case"
+    shutil.copytree(base, d)
+    _apply(d, files)
+    return d
+
+
+def _check(d: Path, command: str, words: list[str]) -> None:
+    args = command.format(d=d).split()
+    before = _tree(d)
+    code, stderr = run_cli(args[0], args[1:])
+    lines = stderr.strip().splitlines()
+    assert code == 2, stderr
+    assert len(lines) == 1 and "Traceback" not in stderr, stderr
+    for w in words:
+        assert w in lines[0], (w, lines[0])
+    assert _tree(d) == before  # nothing created or changed
+
+
+def _case_id(i: int, command: str) -> str:
+    words = command.split()
+    return f"{i:03d}-{words[0]}-{words[1]}"
 
 
 @pytest.mark.parametrize(
-    ("command", "words"), CASES, ids=[c[0].split(" {d}")[0] + f"#{i}" for i, c in enumerate(CASES)]
+    ("command", "words", "files"), CASES, ids=[_case_id(i, c[0]) for i, c in enumerate(CASES)]
 )
-def test_bad_input_is_one_line_exit_2_and_writes_nothing(folder, command, words):
-    args = command.format(d=folder).split()
-    before = _tree(folder)
-    code = "import sys; from {m}.cli import main; sys.argv[0] = '{m}'; main()".format(m=args[0])
-    out = subprocess.run([sys.executable, "-c", code, *args[1:]], capture_output=True, text=True, timeout=120)
-    lines = out.stderr.strip().splitlines()
-    assert out.returncode == 2, out.stderr
-    assert len(lines) == 1 and "Traceback" not in out.stderr, out.stderr
-    for w in words:
-        assert w in lines[0], (w, lines[0])
-    assert _tree(folder) == before  # nothing created or changed
+def test_bad_input_is_one_line_exit_2_and_writes_nothing(base, tmp_path, command, words, files):
+    _check(_case_folder(base, tmp_path, files), command, words)
+
+
+def test_the_table_covers_every_command():
+    """At least 100 cases, and every command of both CLIs has some."""
+    counts = Counter(" ".join(c[0].split()[:2]) for c in CASES)
+    commands = {
+        "rangemcl": [
+            "sensors",
+            "sweep",
+            "build-map",
+            "import-mesh",
+            "map-info",
+            "map-quality",
+            "localize",
+            "evaluate",
+        ],
+        "simbed": ["make-town", "record", "export-mesh", "demo", "trials", "render"],
+    }
+    for prog, names in commands.items():
+        listed = subprocess.run(
+            [sys.executable, "-m", f"{prog}.cli", "--help"], capture_output=True, text=True
+        )
+        for name in names:
+            assert name in listed.stdout, (prog, name)
+            assert counts[f"{prog} {name}"] >= 1, (prog, name)
+    assert len(CASES) >= 100
+
+
+def test_the_good_inputs_are_good(base, tmp_path):
+    """The base folder's inputs are accepted, so each case fails for its own bad input."""
+    from rangemcl.dataset import load_sequence
+    from rangemcl.mapping.meshmap import MeshMap
+    from rangemcl.sensors import load_spec_file
+
+    seq = load_sequence(base / "seq", require_poses=True)
+    assert len(seq) == N_FRAMES and seq.odometry is not None and seq.times is not None
+    assert all(len(seq.scan(k)) == N_POINTS for k in range(N_FRAMES))
+    assert MeshMap.load(base / "map").n_triangles == 24
+    load_spec_file(base / "sensor.yaml")
+    d = _case_folder(base, tmp_path, {})
+    for command in (
+        "rangemcl map-info {d}/map",
+        "rangemcl evaluate {d}/results --gt {d}/seq/poses.txt",
+        "rangemcl sensors {d}/sensor.yaml",
+    ):
+        args = command.format(d=d).split()
+        code, stderr = run_cli(args[0], args[1:])
+        assert code in (0, None) and stderr == "", (command, stderr)
+
+
+def test_in_process_equals_a_process(base, tmp_path):
+    """A few cases as real processes: the same line, the same status."""
+    d = _case_folder(base, tmp_path, {"seq/poses.txt": ELEVEN})
+    for command in (LOC + " --frames -5", BUILD, "rangemcl map-info {d}/nope"):
+        args = command.format(d=d).split()
+        code = "import sys; from {m}.cli import main; sys.argv[0] = '{m}'; main()".format(m=args[0])
+        out = subprocess.run(
+            [sys.executable, "-c", code, *args[1:]], capture_output=True, text=True, timeout=120
+        )
+        assert (out.returncode, out.stderr) == run_cli(args[0], args[1:])

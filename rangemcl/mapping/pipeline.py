@@ -39,6 +39,9 @@ from rangemcl.transforms import interpolate_poses
 # ---------------------------------------------------------------------------------------------- settings
 
 
+MAX_PROJECTION_PIXELS = 1 << 24  # a range image of more pixels would not fit in memory (and no LiDAR has one)
+
+
 @dataclass
 class ScanSettings:
     min_range_m: float = 1.5  # drop returns this close (the car's own surroundings, spray)
@@ -146,6 +149,11 @@ class MapSettings:
             )
         if not pr.fov_down_deg < pr.fov_up_deg:
             raise InputError(f"{where}: projection.fov_down_deg must be below projection.fov_up_deg")
+        if pr.height * pr.width > MAX_PROJECTION_PIXELS:
+            raise InputError(
+                f"{where}: projection.height x projection.width must be at most {MAX_PROJECTION_PIXELS} "
+                f"pixels, got {pr.height} x {pr.width}"
+            )
 
 
 # ---------------------------------------------------------------------------------------------- report
