@@ -311,6 +311,10 @@ CASES: list[tuple[str, list[str], dict]] = [
     ("rangemcl build-map {d}/seq --out {d}/map", ["map", "--overwrite"], {}),
     (BUILD + " --resume", ["nothing to resume"], {}),
     ("rangemcl build-map {d}/seq --out {d}/map --resume --overwrite", ["--resume", "--overwrite"], {}),
+    (BUILD + " --resume", ["state.json", "unreadable", "--overwrite"], {"o/.build/state.json": "{broken"}),
+    (BUILD + " --resume", ["state.json", "not a build state"], {"o/.build/state.json": "[1]"}),
+    (BUILD + " --resume", ["another sequence or other settings"], {"o/.build/state.json": '{"version": 0}'}),
+    (BUILD, ["interrupted build", "--resume"], {"o/.build/state.json": "{}"}),
     # --- rangemcl import-mesh
     ("rangemcl import-mesh {d}/nope.ply --out {d}/o", ["nope.ply", "does not exist"], {}),
     ("rangemcl import-mesh {d}/seq --out {d}/o", ["seq", "not a file"], {}),

@@ -436,7 +436,14 @@ def _build(seq_dir, out_dir: Path, settings: MapSettings | None, progress: bool,
             if not work.is_dir():
                 raise InputError(f"{out_dir}: nothing to resume (no interrupted build in it)")
         else:
-            state = json.loads(state_file.read_text())
+            try:
+                state = json.loads(state_file.read_text())
+            except (OSError, ValueError) as err:
+                raise InputError(
+                    f"{state_file}: unreadable ({err}); give --overwrite to start the build over"
+                ) from None
+            if not isinstance(state, dict):
+                raise InputError(f"{state_file}: not a build state; give --overwrite to start the build over")
             if state.get("version") != STATE_VERSION or state.get("fingerprint") != fingerprint:
                 raise InputError(
                     f"{out_dir}: the interrupted build used another sequence or other settings; "
