@@ -301,6 +301,13 @@ class Sequence:
         if not path.is_file():
             return {}
         try:
+            with open(path, "rb") as fh:
+                is_zip = fh.read(2) == b"PK"
+        except OSError as err:
+            raise _oserror(path, "read per-point arrays", err) from None
+        if not is_zip:  # else numpy would try it as a pickle, and say so
+            raise InputError(f"{path}: cannot read per-point arrays (not an .npz file)")
+        try:
             with np.load(path, allow_pickle=False) as npz:
                 arrays = {key: npz[key] for key in npz.files}
         except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:

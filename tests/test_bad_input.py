@@ -369,7 +369,12 @@ CASES: list[tuple[str, list[str], dict]] = [
         ["mesh.ply", "24 triangles", "25"],
         {"map/map.yaml": replace("triangles: 24", "triangles: 25")},
     ),
-    ("rangemcl map-info {d}/map", ["drive.npz", "cannot read"], {"map/drive.npz": b"not an npz file"}),
+    ("rangemcl map-info {d}/map", ["drive.npz", "not an .npz file"], {"map/drive.npz": b"\x93NUMPY junk"}),
+    (
+        BUILD,
+        ["points_meta/000001.npz", "not an .npz file"],
+        {"seq/points_meta/000001.npz": b"\x80\x04junk"},  # a pickle
+    ),
     (
         "rangemcl map-info {d}/map",
         ["map.yaml", "format_version"],
@@ -377,7 +382,7 @@ CASES: list[tuple[str, list[str], dict]] = [
     ),
     # --- rangemcl map-quality
     ("rangemcl map-quality {d}/nope --truth {d}/ground.ply", ["nope", "does not exist"], {}),
-    (QUALITY, ["tiles.npz", "cannot read"], {"map/tiles.npz": b"garbage"}),
+    (QUALITY, ["tiles.npz", "not an .npz file"], {"map/tiles.npz": b"garbage"}),
     (QUALITY, ["mesh.ply", "truncated"], {"map/mesh.ply": halve}),
     ("rangemcl map-quality {d}/map --truth {d}/nope.ply", ["nope.ply", "does not exist"], {}),
     ("rangemcl map-quality {d}/map --truth {d}/m.obj", ["m.obj", "no triangles"], {"m.obj": "not a mesh\n"}),

@@ -794,6 +794,13 @@ def thin_path(xy, spacing_m: float) -> np.ndarray:
 def _read_npz(path: Path, shapes: dict[str, tuple]) -> dict[str, np.ndarray]:
     """The named arrays of an npz file, checked against shapes (-1: any length)."""
     try:
+        with open(path, "rb") as fh:
+            is_zip = fh.read(2) == b"PK"
+    except OSError as err:
+        raise InputError(f"{path}: cannot read: {err.strerror or err}") from None
+    if not is_zip:  # else numpy would try it as a pickle, and say so
+        raise InputError(f"{path}: cannot read: not an .npz file (damaged, or another kind of file)")
+    try:
         with np.load(path, allow_pickle=False) as z:
             out = {k: z[k] for k in shapes if k in z.files}
     except Exception as err:  # zipfile, pickle and format errors all mean a broken file
