@@ -160,26 +160,35 @@ def evaluate_results(results_dir, gt_path, *, check_every: int = 100, success_m:
         summary = json.loads(spath.read_text())
     except (OSError, ValueError) as err:
         raise InputError(f"{spath}: cannot read ({err})") from None
+    try:  # a summary edited or damaged by hand: one line naming it
+        if not isinstance(summary, dict):
+            raise ValueError(f"expected a JSON object, got {type(summary).__name__}")
+        first = int(summary.get("first_frame", 0))
+        conv = summary.get("converged_frame")
+        conv = None if conv is None else int(conv) - first
+        conv_frames = [int(f) - first for f in summary.get("convergence_frames", [])]
+        rec_frames = [int(f) - first for f in summary.get("recovery_frames", [])]
+        Tr = np.asarray(summary.get("calib_Tr", np.eye(4).tolist()), np.float64)
+        if Tr.shape != (4, 4) or not np.isfinite(Tr).all():
+            raise ValueError(f"calib_Tr: expected a finite 4 x 4 matrix, got shape {Tr.shape}")
+    except (TypeError, ValueError) as err:
+        raise InputError(f"{spath}: malformed ({err})") from None
     est = read_poses_txt(epath)
     gt = read_poses_txt(gt_path)
-    first = int(summary.get("first_frame", 0))
     if len(gt) < first + len(est):
         raise InputError(
             f"{gt_path}: has {len(gt)} poses but the run estimated frames {first}..{first + len(est) - 1}"
         )
-    Tr = np.asarray(summary.get("calib_Tr", np.eye(4).tolist()), np.float64)
     est_l = est @ Tr
     gt_l = gt[first : first + len(est)] @ Tr
-    conv = summary.get("converged_frame")
-    conv = None if conv is None else int(conv) - first
     metrics = localization_metrics(
         xyyaw_of(est_l),
         xyyaw_of(gt_l),
         conv,
         check_every=check_every,
         success_m=success_m,
-        convergence_frames=[int(f) - first for f in summary.get("convergence_frames", [])],
-        recovery_frames=[int(f) - first for f in summary.get("recovery_frames", [])],
+        convergence_frames=conv_frames,
+        recovery_frames=rec_frames,
     )
     shift_event_frames(metrics, first)
     metrics["first_frame"] = first

@@ -125,7 +125,10 @@ def _sensor_height(seq: Sequence, mesh_map: MeshMap, settings: LocalizerSettings
     if isinstance(sensor, dict):
         mount = sensor.get("mount")
         if isinstance(mount, dict) and isinstance(mount.get("xyz_m"), list) and len(mount["xyz_m"]) == 3:
-            return float(mount["xyz_m"][2]), "the sequence's sensor mount"
+            z = mount["xyz_m"][2]
+            if isinstance(z, bool) or not isinstance(z, int | float) or not math.isfinite(z):
+                raise InputError(f"{seq.root}/meta.yaml: sensor.mount.xyz_m[2] must be a number, got {z!r}")
+            return float(z), "the sequence's sensor mount"
     if "sensor_height_m" in mesh_map.meta:
         return float(mesh_map.meta["sensor_height_m"]), "the map's metadata"
     return 1.73, "default (KITTI)"
@@ -183,6 +186,8 @@ class LocalizationPipeline:
 
     def run(self) -> dict:
         self.load()  # sequence, map, odometry, frame range, sensor height: every check before any output
+        if self.opt.resume:
+            self.check_resume()  # the checkpoint fits this run: before anything is built or written
         self.start_filter()  # the localizer, spread (global) or started at the initial pose (tracking)
         self.resume_from = self.restore() if self.opt.resume else 0  # the checkpoint's state
         self.filter_frames()  # one step per frame, frames.csv appended as it goes
@@ -279,13 +284,16 @@ class LocalizationPipeline:
         extra = {"fingerprint": self.fingerprint(), "done": self.log.done, "elapsed_s": elapsed_s}
         save_state(self.out_dir / CHECKPOINT, self.checkpoint_parts(), extra)
 
-    def restore(self) -> int:
-        """Put the filter, the frame log and the counts back to the folder's last checkpoint; return the
-        number of frames it holds (the frames after it are localized again)."""
+    def check_resume(self) -> None:
+        """Refuse, in one line and before any work, a folder without a checkpoint that fits this run."""
         path = self.out_dir / CHECKPOINT
         summary = self.out_dir / "summary.json"
         if not path.is_file():
-            if summary.is_file() and not json.loads(summary.read_text()).get("interrupted", True):
+            try:
+                finished = not json.loads(summary.read_text()).get("interrupted", True)
+            except (OSError, ValueError, AttributeError):
+                finished = False
+            if finished:
                 raise InputError(
                     f"{self.out_dir}: holds a finished run, nothing to resume (--overwrite runs again)"
                 )
@@ -296,13 +304,22 @@ class LocalizationPipeline:
         from rangemcl.checkpoint import read_state
 
         _tree, extra, _arrays = read_state(path)
-        saved, now = extra.get("fingerprint", {}), self.fingerprint()
-        diff = _differences(saved, now)
+        saved = extra.get("fingerprint", {}) if isinstance(extra, dict) else {}
+        diff = _differences(saved, self.fingerprint())
         if diff:
             raise InputError(
                 f"{self.out_dir}: was started with other inputs or settings ({', '.join(diff[:4])}); "
                 "resume with the same command, or --overwrite"
             )
+
+    def restore(self) -> int:
+        """Put the filter, the frame log and the counts back to the folder's last checkpoint (checked by
+        :meth:`check_resume`); return the number of frames it holds (the frames after it are localized
+        again)."""
+        path = self.out_dir / CHECKPOINT
+        from rangemcl.checkpoint import read_state
+
+        _tree, extra, _arrays = read_state(path)
         restore_state(path, self.checkpoint_parts())
         self.resumed_elapsed_s = float(extra.get("elapsed_s", 0.0))
         self.events.setdefault("resumed_at_frames", []).append(self.first + self.log.done)

@@ -501,6 +501,18 @@ CASES: list[tuple[str, list[str], dict]] = [
     ("rangemcl evaluate {d}/nope --gt {d}/seq/poses.txt", ["summary.json", "missing"], {}),
     ("rangemcl evaluate {d}/seq --gt {d}/seq/poses.txt", ["summary.json", "missing", "results folder"], {}),
     (EVAL, ["summary.json", "cannot read"], {"results/summary.json": "{not json\n"}),
+    (EVAL, ["summary.json", "malformed", "JSON object"], {"results/summary.json": "[1, 2]\n"}),
+    (EVAL, ["summary.json", "malformed"], {"results/summary.json": '{"first_frame": "x"}\n'}),
+    (EVAL, ["summary.json", "malformed"], {"results/summary.json": '{"converged_frame": "soon"}\n'}),
+    (EVAL, ["summary.json", "calib_Tr"], {"results/summary.json": '{"calib_Tr": [[1, 0], [0, 1]]}\n'}),
+    # --resume on a folder without a checkpoint: refused before the filter starts (the map folder, where
+    # the place prior is cached on first use, stays as it was)
+    ("rangemcl localize {d}/seq --map {d}/map --out {d}/results --resume", ["results", "resume"], {}),
+    (
+        LOC,
+        ["meta.yaml", "sensor.mount.xyz_m"],
+        {"seq/meta.yaml": "complete: true\nsensor: {mount: {xyz_m: [0, 0, high]}}\n"},
+    ),
     (EVAL, ["estimate_kitti.txt", "line 2", "11 numbers"], {"results/estimate_kitti.txt": ELEVEN}),
     (
         EVAL,
