@@ -2,6 +2,12 @@
 
 from __future__ import annotations
 
+import os
+
+# MuJoCo picks its offscreen GL backend when it is first imported: headless EGL, as simbed itself sets it,
+# whichever test module happens to import mujoco first
+os.environ.setdefault("MUJOCO_GL", "egl")
+
 import pytest
 
 
