@@ -79,23 +79,36 @@ def _ready() -> bool:
 def _start_workers(pool: ProcessPoolExecutor, workers: int) -> None:
     """Start every worker now, with Ctrl-C and SIGTERM held back meanwhile (they act right after): a
     stop that lands while a worker is being spawned leaves it reading a half-written start-up message
-    and printing a traceback ("EOFError: Ran out of input") on the user's terminal."""
-    main = threading.current_thread() is threading.main_thread()
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS) if main else None
+    and printing a traceback ("EOFError: Ran out of input") on the user's terminal. The signals are
+    held back by handlers that note them, not by a signal mask: Python runs its handlers in the main
+    thread whichever thread the kernel hands the signal to, and threads started earlier (thread pools,
+    progress bars) do not share the main thread's mask."""
+    held: list[int] = []
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in _STOP_SIGNALS:
+            previous[sig] = signal.signal(sig, lambda signum, _frame: held.append(signum))
     try:
+        # spawn every worker now: with the spawn and forkserver start methods the pool otherwise starts
+        # them one by one as jobs come and find no idle worker, so a worker could start later, unguarded
+        launch = getattr(pool, "_launch_processes", None)
+        if launch is not None and getattr(pool, "_executor_manager_thread", None) is None:
+            launch()
         for f in [pool.submit(_ready) for _ in range(workers)]:
             f.result()
     finally:
-        if previous is not None:
-            signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    if held:
+        os.kill(os.getpid(), held[0])  # now, with the usual handler
 
 
 def _worker_init(parent_pid: int) -> None:
-    # the signal mask of _start_workers is inherited: a worker must be stoppable
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
-    # a forked worker inherits the console scripts' SIGTERM handler (SIGTERM -> KeyboardInterrupt), which
-    # would turn terminate() into an exception the worker reports and survives
+    # a forked worker inherits the parent's handlers: the console scripts' SIGTERM handler (SIGTERM ->
+    # KeyboardInterrupt) would turn terminate() into an exception the worker reports and survives, and
+    # the handlers of _start_workers would hold its stops back
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     die_with_parent(parent_pid)
 
 

@@ -46,3 +46,50 @@ def _interrupt_once(context):
     assert time.perf_counter() - clock < 20  # a plain executor would wait about 3 x 60 s
     assert set(multiprocessing.active_children()) <= before
     assert all(f.cancelled() or f.done() for f in futures)
+
+
+_STOP_DURING_SPAWN = r"""
+import os, signal, sys, threading
+from concurrent.futures import ProcessPoolExecutor
+from rangemcl.pool import process_pool
+
+def stop(signum, frame):  # the console scripts' SIGTERM handler
+    raise KeyboardInterrupt
+
+signal.signal(signal.SIGTERM, stop)
+threading.Thread(target=lambda: None).start()  # threads started earlier do not share a signal mask
+spawned = []
+original = ProcessPoolExecutor._spawn_process
+
+def spawn_after_a_stop(self):
+    # SIGTERM, sent from another thread, is pending when the worker is spawned: Python runs its handler
+    # in the main thread at the next instruction, in the middle of writing the start-up message
+    if not spawned:
+        t = threading.Thread(target=os.kill, args=(os.getpid(), signal.SIGTERM))
+        t.start()
+        t.join()
+    original(self)
+    spawned.append(1)
+
+ProcessPoolExecutor._spawn_process = spawn_after_a_stop
+if __name__ == "__main__":
+    try:
+        with process_pool(2, "spawn"):
+            print("not stopped")
+    except KeyboardInterrupt:
+        print(f"stopped after {len(spawned)} workers")
+"""
+
+
+def test_a_stop_while_workers_spawn_waits_for_them(tmp_path):
+    """SIGTERM landing while a spawned worker is being started acts once every worker is up: the stop
+    still happens, and no worker prints a half-read start-up message's traceback on the terminal."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "stop_during_spawn.py"
+    script.write_text(_STOP_DURING_SPAWN)
+    r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "stopped after 2 workers"
+    assert "Traceback" not in r.stderr, r.stderr
