@@ -67,6 +67,58 @@ def _output_dir(option: str, path: Path) -> None:
         raise InputError(f"{path}: {what} (choose another {option})")
 
 
+def _bag_options(
+    lidar_topic: str | None = None,
+    imu_topic: str | None = None,
+    odom_topic: str | None = None,
+    sensor_to_base: str | None = None,
+    poses: Path | None = None,
+    point_time_field: str | None = None,
+    scan_stamp: str | None = None,
+):
+    """The bag-reading options of a command, or None when none is given."""
+    from rangemcl.errors import InputError
+    from rangemcl.ros.bag import BagOptions
+
+    mount = None
+    if sensor_to_base is not None:
+        try:
+            mount = tuple(float(v) for v in sensor_to_base.replace(",", " ").split())
+        except ValueError:
+            mount = ()
+        if len(mount) != 6:
+            raise InputError(f"--sensor-to-base {sensor_to_base!r}: expected 'x,y,z,roll,pitch,yaw' (m, deg)")
+    if scan_stamp not in (None, "start", "end"):
+        raise InputError(f"--scan-stamp {scan_stamp!r}: expected start or end")
+    if poses is not None and not poses.is_file():
+        raise InputError(f"{poses}: no such poses file")
+    opt = BagOptions(
+        lidar_topic=lidar_topic,
+        imu_topic=imu_topic,
+        odom_topic=odom_topic,
+        sensor_to_base=mount,
+        poses_file=None if poses is None else str(poses),
+        point_time_field=point_time_field,
+        scan_stamp=scan_stamp,
+    )
+    given = any(v is not None for v in vars(opt).values())
+    return opt if given else None
+
+
+_LIDAR_TOPIC = typer.Option(None, help="Bags: the PointCloud2 topic (default: the only one, or /points).")
+_IMU_TOPIC = typer.Option(None, help="Bags: the sensor_msgs/Imu topic (default: /imu if present).")
+_ODOM_TOPIC = typer.Option(None, help="Bags: the nav_msgs/Odometry topic (default: /odom if present).")
+_SENSOR_TO_BASE = typer.Option(
+    None, help="Bags: the LiDAR's mounting 'x,y,z,roll,pitch,yaw' (m, deg) when TF does not give it."
+)
+_POINT_TIME_FIELD = typer.Option(
+    None, help="Bags: the per-point time field (default: t, time, timestamp, time_stamp or offset_time)."
+)
+_SCAN_STAMP = typer.Option(
+    None, help="Bags: a scan's stamp marks its sweep's start or end (default: detected)."
+)
+
+
 @app.command()
 def sensors(
     name: str = typer.Argument(None, help="A preset name or a sensor YAML file; omit to list the presets."),
@@ -179,7 +231,9 @@ def sweep(
 
 @app.command("build-map")
 def build_map(
-    seq_dir: Path = typer.Argument(..., help="A sequence folder (KITTI layout) with poses."),
+    seq_dir: Path = typer.Argument(
+        ..., help="A sequence folder (KITTI layout) with poses, or a bag (.bag, .mcap, ROS 2 folder)."
+    ),
     out: Path = typer.Option(..., help="Map folder to write."),
     config: Path = typer.Option(None, help="YAML settings (defaults: see the map's config.yaml)."),
     workers: int = typer.Option(None, help="Tile jobs in parallel (default: the config's, 0 = all cores)."),
@@ -189,6 +243,13 @@ def build_map(
     resume: bool = typer.Option(
         False, help="Finish the interrupted build in OUT (same sequence and settings): only missing tiles."
     ),
+    poses: Path = typer.Option(
+        None, help="Bags: the LiDAR's poses, TUM (by time) or KITTI (a line per scan), if not in the bag."
+    ),
+    lidar_topic: str = _LIDAR_TOPIC,
+    sensor_to_base: str = _SENSOR_TO_BASE,
+    point_time_field: str = _POINT_TIME_FIELD,
+    scan_stamp: str = _SCAN_STAMP,
 ) -> None:
     """Build a tiled mesh map: range-image normals, ground labels, Poisson per tile, ground simplification."""
     import sys
@@ -200,6 +261,13 @@ def build_map(
     from rangemcl.outdir import MAP_MARKERS, output_folder
 
     settings = load_config(MapSettings, config)
+    bag = _bag_options(
+        lidar_topic,
+        sensor_to_base=sensor_to_base,
+        poses=poses,
+        point_time_field=point_time_field,
+        scan_stamp=scan_stamp,
+    )
     if workers is not None:
         settings.workers = workers
     if resume and overwrite:
@@ -210,7 +278,7 @@ def build_map(
         if resume:
             if not interrupted:
                 raise InputError(f"{out}: nothing to resume (no interrupted build in it)")
-            r = run(seq_dir, out, settings, progress=progress, resume=True)
+            r = run(seq_dir, out, settings, progress=progress, resume=True, bag_options=bag)
         else:
             if interrupted and not overwrite:
                 raise InputError(
@@ -224,7 +292,7 @@ def build_map(
                 markers=(*MAP_MARKERS, WORK_DIR),
                 keep_if=lambda p: (p / WORK_DIR / "state.json").is_file(),
             ):
-                r = run(seq_dir, out, settings, progress=progress)
+                r = run(seq_dir, out, settings, progress=progress, bag_options=bag)
     except KeyboardInterrupt:
         if (out / WORK_DIR / "state.json").is_file():
             typer.echo(
@@ -321,7 +389,9 @@ def map_quality_cmd(
 
 @app.command()
 def localize(
-    seq_dir: Path = typer.Argument(..., help="A sequence folder (KITTI layout) with odometry."),
+    seq_dir: Path = typer.Argument(
+        ..., help="A sequence folder (KITTI layout) or a bag (.bag, .mcap, ROS 2 bag folder)."
+    ),
     map_dir: Path = typer.Option(..., "--map", help="A map folder (rangemcl build-map or import-mesh)."),
     out: Path = typer.Option(..., help="Results folder to write."),
     particles: int = typer.Option(None, help="Particles (global: the spread, default 10000; tracking: 100)."),
@@ -339,6 +409,18 @@ def localize(
     odometry_from_poses: bool = typer.Option(
         False, help="Without odometry.txt, derive the odometry from poses.txt (it is then noise-free)."
     ),
+    odometry: str = typer.Option(
+        None,
+        help="kiss-icp (LiDAR odometry from the scans; the [kiss] extra) or poses:FILE (the LiDAR's poses, "
+        "TUM or KITTI) instead of the sequence's own odometry.",
+    ),
+    poses: Path = typer.Option(None, help="Bags: ground-truth LiDAR poses (TUM or KITTI) for the metrics."),
+    lidar_topic: str = _LIDAR_TOPIC,
+    imu_topic: str = _IMU_TOPIC,
+    odom_topic: str = _ODOM_TOPIC,
+    sensor_to_base: str = _SENSOR_TO_BASE,
+    point_time_field: str = _POINT_TIME_FIELD,
+    scan_stamp: str = _SCAN_STAMP,
     plots: bool = typer.Option(True, help="Write trajectory, error and particle plots."),
     threads: int = typer.Option(None, help="CPU threads for ray casting (default: all cores)."),
     overwrite: bool = typer.Option(
@@ -381,6 +463,10 @@ def localize(
         frames=frames,
         init_pose=start,
         odometry_from_poses=odometry_from_poses,
+        odometry=odometry,
+        bag=_bag_options(
+            lidar_topic, imu_topic, odom_topic, sensor_to_base, poses, point_time_field, scan_stamp
+        ),
         plots=plots,
         progress=sys.stderr.isatty(),
         resume=resume,

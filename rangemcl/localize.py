@@ -33,13 +33,14 @@ import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from rangemcl.atomic import atomic_write, savez_stable
 from rangemcl.checkpoint import restore_state, save_state
 from rangemcl.config import write_config
-from rangemcl.dataset import Sequence, load_sequence, poses_to_tum, write_poses_txt
+from rangemcl.dataset import Sequence, poses_to_tum, write_poses_txt
 from rangemcl.errors import InputError
 from rangemcl.evaluate import localization_metrics, shift_event_frames, xyyaw_of
 from rangemcl.mapping.meshmap import MeshMap
@@ -50,6 +51,7 @@ from rangemcl.mcl import (
     rotation_roll_pitch,
     se2_between,
 )
+from rangemcl.sources import open_source
 
 FRAME_COLUMNS = (
     "frame,time_s,x,y,yaw,particles,converged,updated,resampled,skipped_scan,recovered,"
@@ -69,6 +71,8 @@ class RunOptions:
     frames: int | None = None  # at most this many frames
     init_pose: tuple[float, float, float] | None = None  # tracking start (default: the first true pose)
     odometry_from_poses: bool = False  # without odometry.txt: derive it from poses.txt (and say so)
+    odometry: str | None = None  # None: the sequence's own; "kiss-icp"; "poses:FILE" (KITTI or TUM)
+    bag: Any = None  # rangemcl.ros.bag.BagOptions for a bag (topics, mounting, point times)
     plots: bool = True
     progress: bool = False
     resume: bool = False  # continue the interrupted run in the results folder (its checkpoint)
@@ -78,13 +82,32 @@ class RunOptions:
 CHECKPOINT = Path(".resume") / "state.npz"  # the filter's state at the last checkpoint, in the results folder
 
 
-def odometry_xyyaw(seq: Sequence, from_poses: bool) -> tuple[np.ndarray, str]:
-    """The odometry as ``(N, 3)`` x, y, yaw and where it came from."""
+def odometry_xyyaw(seq: Sequence, from_poses: bool, source: str | None = None) -> tuple[np.ndarray, str]:
+    """The odometry as ``(N, 3)`` x, y, yaw and where it came from: the sequence's own (``odometry.txt``,
+    a bag's odometry topic), or ``source``: ``kiss-icp`` (LiDAR odometry computed from the scans) or
+    ``poses:FILE`` (LiDAR poses, KITTI one line per scan or TUM by time)."""
+    if source is not None:
+        if source == "kiss-icp":
+            from rangemcl.lidar_odometry import kiss_icp_odometry
+
+            return xyyaw_of(kiss_icp_odometry(seq)), "kiss-icp (LiDAR odometry from the scans)"
+        if source.startswith("poses:") and len(source) > len("poses:"):
+            from rangemcl.ros.bag import poses_at_scans
+
+            path = Path(source[len("poses:") :])
+            if seq.times is None:
+                raise InputError(f"{seq.root}: --odometry {source}: the sequence has no times to match")
+            return xyyaw_of(poses_at_scans(path, seq.times)), f"{path} (--odometry poses:FILE)"
+        raise InputError(f"--odometry {source!r}: expected kiss-icp or poses:FILE")
     if seq.odometry is not None:
-        return xyyaw_of(seq.odometry), "odometry.txt"
+        return xyyaw_of(seq.odometry), getattr(seq, "odometry_source", "odometry.txt")
     if from_poses and seq.poses is not None:
         return xyyaw_of(seq.poses), "poses.txt (derived because the sequence has no odometry.txt)"
     hint = " (or pass --odometry-from-poses to derive it from poses.txt)" if seq.poses is not None else ""
+    if getattr(seq, "topic", None) is not None:  # a bag
+        raise InputError(
+            f"{seq.root}: no odometry topic (give --odom-topic, --odometry kiss-icp or --odometry poses:FILE)"
+        )
     raise InputError(f"{seq.root}: the sequence has no odometry.txt{hint}")
 
 
@@ -219,12 +242,12 @@ class LocalizationPipeline:
             raise InputError(
                 "an initial pose is for tracking mode (--mode tracking); global mode searches the map"
             )
-        self.seq = seq = load_sequence(self.seq_dir)
+        self.seq = seq = open_source(self.seq_dir, bag_options=opt.bag)
         if len(seq) == 0:
             raise InputError(f"{seq.root}: the sequence has no scans")
         self.map = MeshMap.load(self.map_dir)
         check_map_frame(seq, self.map)
-        self.odo, self.odo_source = odometry_xyyaw(seq, opt.odometry_from_poses)
+        self.odo, self.odo_source = odometry_xyyaw(seq, opt.odometry_from_poses, opt.odometry)
         self.first = int(opt.first_frame)
         if not 0 <= self.first < len(seq):
             raise InputError(f"first frame {self.first} out of range (the sequence has {len(seq)} frames)")
@@ -272,7 +295,8 @@ class LocalizationPipeline:
                 k: getattr(opt, k)
                 for k in ("mode", "particles", "device", "seed", "first_frame", "frames", "init_pose")
             }
-            | {"odometry_from_poses": opt.odometry_from_poses},
+            | {"odometry_from_poses": opt.odometry_from_poses, "odometry": opt.odometry}
+            | ({"bag": asdict(opt.bag)} if opt.bag is not None else {}),
         }
         return json.loads(json.dumps(fp))
 

@@ -42,7 +42,9 @@ def make_town(
 
 @app.command()
 def record(
-    out: Path = typer.Option(..., help="Sequence folder to write (KITTI layout)."),
+    out: Path = typer.Option(
+        ..., help="Sequence folder to write (KITTI layout), a ROS 2 bag folder, or a ROS 1 .bag file."
+    ),
     scene: str = typer.Option("town_small", help="Scene name in scenes/ or an MJCF file."),
     route: str = typer.Option(
         "mapping",
@@ -63,8 +65,15 @@ def record(
     actor_paths: Path = typer.Option(
         None, help="YAML file of actors with their own paths (kind, speed, loop, start_m, waypoints)."
     ),
+    fmt: str = typer.Option(
+        "kitti",
+        "--format",
+        help="kitti (folder), mcap (ROS 2 bag folder holding one .mcap), rosbag2 (ROS 2 bag folder, "
+        "SQLite) or rosbag1 (.bag file); bags need the [ros] extra.",
+    ),
 ) -> None:
-    """Drive a route and record LiDAR, ground-truth poses, odometry and IMU in the KITTI layout.
+    """Drive a route and record LiDAR, ground-truth poses, odometry and IMU in the KITTI layout or as a
+    ROS bag / MCAP (PointCloud2 with per-point time and ring, IMU, odometry, TF, truth, actors).
 
     Any MJCF scene can be driven: without a `car` body simbed adds its car at the route's start, and
     without a town's sidecar the ground is found in the scene's own geometry."""
@@ -88,17 +97,19 @@ def record(
             progress=sys.stderr.isatty(),
             loop=loop,
             actor_paths=actor_paths,
+            fmt=fmt,
         )
     except KeyboardInterrupt:
-        from rangemcl.dataset import load_sequence
         from rangemcl.errors import InputError
+        from rangemcl.sources import open_source
 
         try:
-            done = len(load_sequence(out))
+            done = len(open_source(out))
         except InputError:
             done = 0
+        where = "meta.yaml" if fmt == "kitti" else "its /simbed/meta message"
         typer.echo(
-            f"interrupted: {done} complete frames in {out} (readable; meta.yaml says complete: false)",
+            f"interrupted: {done} complete frames in {out} (readable; {where} says complete: false)",
             err=True,
         )
         raise typer.Exit(130) from None

@@ -14,7 +14,7 @@ from rangemcl.dataset import SequenceWriter
 from rangemcl.errors import InputError
 from rangemcl.sensors import load_spec
 from simbed import __version__
-from simbed.actors import actors_along_route, check_actor_paths, read_actor_paths
+from simbed.actors import ACTOR_KINDS, actors_along_route, check_actor_paths, read_actor_paths
 from simbed.lanes import MAX_SPEED_MPS, check_lane, lane_from_waypoints, read_waypoints
 from simbed.routes import Route, is_waypoint_file, load_waypoints, make_route
 from simbed.sim import Drive
@@ -59,6 +59,7 @@ def record(
     progress: bool = True,
     loop: bool = False,
     actor_paths: str | os.PathLike | None = None,
+    fmt: str = "kitti",
 ) -> RecordSummary:
     """Drive ``route`` in ``scene`` and write ``frames`` LiDAR frames to ``out``.
 
@@ -70,6 +71,10 @@ def record(
     Everything that can be checked (scene, sensor, route against the scene, output folder) is checked
     before the first file is written; frames are written one by one, so an interrupted recording leaves
     a readable prefix. The drive stops early when the route ends.
+
+    ``fmt`` ``kitti`` writes a KITTI-layout folder; ``mcap``, ``rosbag2`` and ``rosbag1`` a bag
+    (:class:`rangemcl.ros.bag.BagWriter`: PointCloud2 with per-point time and ring, IMU, odometry, TF,
+    the true pose and the actors' boxes), which is complete only once closed.
     """
     out = Path(out)
     if frames < 1:
@@ -81,6 +86,18 @@ def record(
     if seed < 0:
         raise InputError(f"seed must be >= 0, got {seed}")
     spec = load_spec(sensor)
+    if fmt not in ("kitti", *BAG_FORMATS):
+        raise InputError(f"format {fmt!r}: expected kitti, {', '.join(BAG_FORMATS)}")
+    if fmt != "kitti":
+        from rangemcl.ros.bag import _rosbags
+
+        _rosbags(f"--format {fmt}")
+        if (fmt == "rosbag1") != (out.suffix == ".bag"):
+            raise InputError(
+                f"{out}: a ROS 1 bag is a file ending in .bag"
+                if fmt == "rosbag1"
+                else f"{out}: a {fmt} bag is a folder; give a name without .bag"
+            )
     check_writable(out)
     rng = np.random.default_rng(seed)
     if loop and not is_waypoint_file(route):
@@ -132,10 +149,17 @@ def record(
     }
     summary = RecordSummary(out, 0, 0.0, path.length_m, 0.0, False)
     last = None
-    with SequenceWriter(out, meta=meta, overwrite=overwrite) as writer, _progress(progress, frames) as bar:
+    if fmt == "kitti":
+        writer = SequenceWriter(out, meta=meta, overwrite=overwrite)
+    else:
+        from rangemcl.ros.bag import BagWriter
+
+        writer = BagWriter(out, fmt, meta=meta, T_base_sensor=spec.T_base_sensor, overwrite=overwrite)
+    with writer, _progress(progress, frames) as bar:
         for _ in range(frames):
             frame = drive.next_frame()
             s = frame.sweep
+            extra = {} if fmt == "kitti" else {"actors": _actor_boxes(world)}
             writer.add_frame(
                 s.points,
                 pose=frame.T_world_sensor,
@@ -143,6 +167,7 @@ def record(
                 odometry=frame.T_odom_sensor,
                 imu_roll_pitch=frame.imu_roll_pitch,
                 point_meta={"ring": s.ring, "column": s.column, "time_s": s.time_s, "label": s.label},
+                **extra,
             )
             if last is not None:
                 summary.distance_driven_m += float(np.linalg.norm(frame.T_world_sensor[:2, 3] - last[:2, 3]))
@@ -158,6 +183,27 @@ def record(
                 break
         writer.update_meta(frames=summary.frames, route_done=summary.route_done, stuck_at=summary.stuck_at)
     return summary
+
+
+BAG_FORMATS = ("mcap", "rosbag2", "rosbag1")
+
+
+def _actor_boxes(world: World) -> list[dict]:
+    """The moving actors' boxes as they stand now (their mocap poses), for a bag's marker topic."""
+    out = []
+    for a in world.actors:
+        kind = ACTOR_KINDS[a.kind]
+        out.append(
+            {
+                "name": a.name,
+                "kind": a.kind,
+                "xyz": world.data.mocap_pos[a.mocap_id].copy(),
+                "quat_wxyz": world.data.mocap_quat[a.mocap_id].copy(),
+                "half": kind["half"],
+                "rgba": kind["rgba"],
+            }
+        )
+    return out
 
 
 def scene_route(world: World, route: str, *, loop: bool = False, min_length_m: float = 0.0) -> Route:

@@ -23,7 +23,7 @@ import numpy as np
 
 from rangemcl.atomic import atomic_write
 from rangemcl.config import to_dict, write_config
-from rangemcl.dataset import Sequence, load_sequence
+from rangemcl.dataset import Sequence
 from rangemcl.errors import InputError
 from rangemcl.mapping.assemble import assemble_map
 from rangemcl.mapping.ground import label_ground
@@ -34,6 +34,7 @@ from rangemcl.mapping.simplify import simplify_ground
 from rangemcl.pool import kill_point, process_pool
 from rangemcl.rangeimage import RangeImageGeometry
 from rangemcl.sensors import spec_from_dict
+from rangemcl.sources import open_source
 from rangemcl.transforms import interpolate_poses
 
 # ---------------------------------------------------------------------------------------------- settings
@@ -387,6 +388,7 @@ def build_map(
     *,
     progress: bool = False,
     resume: bool = False,
+    bag_options=None,
 ) -> BuildReport:
     """Build a mesh map from a sequence with poses and write it (mesh, tiles, metadata, config, report).
 
@@ -403,7 +405,7 @@ def build_map(
         made = probe
         probe = probe.parent
     try:
-        return _build(seq_dir, out_dir, settings, progress, resume)
+        return _build(seq_dir, out_dir, settings, progress, resume, bag_options)
     except BaseException as err:
         work = out_dir / WORK_DIR
         keep = isinstance(err, KeyboardInterrupt) and (work / "state.json").is_file()
@@ -415,17 +417,25 @@ def build_map(
         raise
 
 
-def _build(seq_dir, out_dir: Path, settings: MapSettings | None, progress: bool, resume: bool) -> BuildReport:
+def _build(
+    seq_dir, out_dir: Path, settings: MapSettings | None, progress: bool, resume: bool, bag_options=None
+) -> BuildReport:
     settings = settings or MapSettings()
     settings.check()
     out_dir = Path(out_dir)
     report = BuildReport()
     clock = time.perf_counter()
-    seq = load_sequence(seq_dir, require_poses=True)
+    seq = open_source(seq_dir, require_poses=True, bag_options=bag_options)
     spec, geometry = scan_geometry(seq, settings)
     height = settings.ground.sensor_height_m
     if height is None:
-        height = float(spec.T_base_sensor[2, 3]) if spec is not None else 1.73
+        mount = seq.meta.get("sensor_to_base") if isinstance(seq.meta, dict) else None  # a bag's TF
+        if spec is not None:
+            height = float(spec.T_base_sensor[2, 3])
+        elif isinstance(mount, dict):
+            height = float(mount["xyz_m"][2])
+        else:
+            height = 1.73
     _check_out_dir(out_dir)
     work = out_dir / WORK_DIR
     state_file = work / "state.json"

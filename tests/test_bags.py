@@ -1,0 +1,242 @@
+"""Bags in and out (issue 15): a simulated drive recorded as MCAP, ROS 2 (SQLite) and ROS 1 bags reads back
+as the KITTI folder of the same drive (points, per-point times and fields, times, poses, odometry, IMU); an
+MCAP written by another library (mcap-ros2-support) reads the same; a localization on the bag gives the
+folder's trajectory; bad bags are one line and exit status 2."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rosbags")
+
+from rangemcl.localize import RunOptions, localize_sequence  # noqa: E402
+from rangemcl.mcl import LocalizerSettings  # noqa: E402
+from rangemcl.sources import open_source  # noqa: E402
+from simbed.record import record  # noqa: E402
+
+FRAMES = 20
+
+
+@pytest.fixture(scope="module")
+def drives(tmp_path_factory):
+    """The same drive (town_small, seed 8, 4 actors) recorded in every format."""
+    root = tmp_path_factory.mktemp("bags")
+    out = {}
+    for fmt, name in (("kitti", "kitti"), ("mcap", "mcap"), ("rosbag2", "ros2"), ("rosbag1", "ros1.bag")):
+        record(
+            "town_small", "mapping", "os1-64", root / name, frames=FRAMES, seed=8, variant=1, actors=4,
+            progress=False, fmt=fmt,
+        )  # fmt: skip
+        out[fmt] = root / name
+    return out
+
+
+def assert_same_frames(bag, folder) -> None:
+    assert len(bag) == len(folder) == FRAMES
+    for i in range(len(folder)):
+        p, inten = bag.scan_with_intensity(i)
+        q, inten_q = folder.scan_with_intensity(i)
+        assert p.dtype == np.float32 and np.array_equal(p, q) and np.array_equal(inten, inten_q)
+        a, b = bag.point_meta(i), folder.point_meta(i)
+        assert set(a) == set(b) == {"ring", "column", "time_s", "label"}
+        for key in b:
+            assert a[key].dtype == b[key].dtype and np.array_equal(a[key], b[key]), key
+    assert np.array_equal(bag.times, folder.times)
+    # KITTI text keeps 10 significant digits; the bag keeps float64
+    assert np.allclose(bag.poses, folder.poses, atol=1e-8, rtol=0)
+    if folder.odometry is not None:
+        assert np.allclose(bag.odometry, folder.odometry, atol=1e-8, rtol=0)
+    if folder.imu_roll_pitch is not None:
+        assert np.allclose(bag.imu_roll_pitch, folder.imu_roll_pitch, atol=1e-9, rtol=0)
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "rosbag2", "rosbag1"])
+def test_a_recorded_bag_reads_back_as_the_folder(drives, fmt):
+    folder = open_source(drives["kitti"])
+    with open_source(drives[fmt]) as bag:
+        assert_same_frames(bag, folder)
+        assert bag.meta["sensor"] == folder.meta["sensor"] and bag.meta["complete"] is True
+        assert bag.meta["scan_stamp"] == "end"
+        assert bag.odometry_source.startswith("/odom")
+    if fmt == "mcap":  # the .mcap file alone (as Foxglove opens it) reads the same
+        with open_source(next(drives[fmt].glob("*.mcap"))) as bag:
+            assert len(bag) == FRAMES
+
+
+def test_the_mcap_is_standard_ros2(drives):
+    """Another library's reader (mcap-ros2-support) decodes our MCAP: schemas, CDR, the actors' markers."""
+    pytest.importorskip("mcap_ros2")
+    from mcap_ros2.reader import read_ros2_messages
+
+    path = next(drives["mcap"].glob("*.mcap"))
+    seen: dict[str, int] = {}
+    for m in read_ros2_messages(str(path)):
+        seen[m.channel.topic] = seen.get(m.channel.topic, 0) + 1
+        if m.channel.topic == "/points" and seen["/points"] == 1:
+            names = [f.name for f in m.ros_msg.fields]
+            assert names[:4] == ["x", "y", "z", "intensity"] and "time" in names and "ring" in names
+        if m.channel.topic == "/actors" and seen["/actors"] == 1:
+            assert len(m.ros_msg.markers) == 4
+    assert seen["/points"] == seen["/odom"] == seen["/imu"] == seen["/ground_truth"] == FRAMES
+    assert seen["/tf_static"] == 1 and seen["/simbed/meta"] == 1
+
+
+def _write_with_mcap_ros2(folder_path, out) -> None:
+    """The folder as an MCAP written by mcap-ros2-support: PointCloud2 (fields in another order, with
+    padding), TF static mount, ground truth."""
+    from mcap_ros2.writer import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from rangemcl.ros.bag import stamp_ns
+    from rangemcl.transforms import quat_from_matrix
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+
+    def schema(w, name):
+        text, _ = ts.generate_msgdef(name, ros_version=2)
+        return w.register_msgdef(name, text)
+
+    seq = open_source(folder_path)
+    with open(out, "wb") as fh:
+        w = Writer(fh)
+        s_pc, s_tf, s_odo = (
+            schema(w, n)
+            for n in ("sensor_msgs/msg/PointCloud2", "tf2_msgs/msg/TFMessage", "nav_msgs/msg/Odometry")
+        )
+        for i in range(len(seq)):
+            ns = stamp_ns(seq.times[i])
+            stamp = {"sec": ns // 10**9, "nanosec": ns % 10**9}
+            pts, inten = seq.scan_with_intensity(i)
+            meta = seq.point_meta(i)
+            # ring first, then a float64 time, x y z later, 3 bytes of padding per point
+            dt = np.dtype(
+                {
+                    "names": ["ring", "time", "x", "y", "z", "intensity", "column", "label"],
+                    "formats": ["<u2", "<f8", "<f4", "<f4", "<f4", "<f4", "<u2", "u1"],
+                    "offsets": [0, 2, 10, 14, 18, 22, 26, 28],
+                    "itemsize": 32,
+                }
+            )
+            rec = np.zeros(len(pts), dt)
+            rec["x"], rec["y"], rec["z"] = pts.T
+            rec["intensity"], rec["ring"], rec["column"], rec["label"] = (
+                inten, meta["ring"], meta["column"], meta["label"],
+            )  # fmt: skip
+            rec["time"] = meta["time_s"]
+            codes = {"<u2": 4, "<f8": 8, "<f4": 7, "|u1": 2}
+            fields = [
+                {"name": n, "offset": dt.fields[n][1], "datatype": codes[dt.fields[n][0].str], "count": 1}
+                for n in dt.names
+            ]
+            msg = {
+                "header": {"stamp": stamp, "frame_id": "velodyne"},
+                "height": 1, "width": len(pts), "fields": fields, "is_bigendian": False, "point_step": 32,
+                "row_step": 32 * len(pts), "data": rec.tobytes(), "is_dense": True,
+            }  # fmt: skip
+            w.write_message("/velodyne_points", s_pc, msg, log_time=ns, publish_time=ns)
+            T = seq.poses[i]
+            q = quat_from_matrix(T[:3, :3])
+            pose = {
+                "position": dict(zip("xyz", T[:3, 3].tolist(), strict=True)),
+                "orientation": dict(zip("xyzw", q.tolist(), strict=True)),
+            }
+            odo = {
+                "header": {"stamp": stamp, "frame_id": "map"},
+                "child_frame_id": "base_link",
+                "pose": {"pose": pose, "covariance": [0.0] * 36},
+                "twist": {
+                    "twist": {"linear": {"x": 0, "y": 0, "z": 0}, "angular": {"x": 0, "y": 0, "z": 0}},
+                    "covariance": [0.0] * 36,
+                },
+            }
+            w.write_message("/gt", s_odo, odo, log_time=ns, publish_time=ns)
+            if i == 0:
+                identity = {
+                    "translation": {"x": 0.0, "y": 0.0, "z": 0.0},
+                    "rotation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+                }
+                tf = {"header": {"stamp": stamp, "frame_id": "base_link"}, "child_frame_id": "velodyne"}
+                w.write_message(
+                    "/tf_static", s_tf, {"transforms": [tf | {"transform": identity}]}, log_time=ns
+                )
+        w.finish()
+
+
+def test_an_mcap_from_another_writer_reads_as_the_folder(drives, tmp_path):
+    pytest.importorskip("mcap_ros2")
+    from rangemcl.ros.bag import BagOptions
+
+    path = tmp_path / "other.mcap"
+    _write_with_mcap_ros2(drives["kitti"], path)
+    folder = open_source(drives["kitti"])
+    with open_source(path, bag_options=BagOptions(truth_topic="/gt")) as bag:
+        assert bag.topic == "/velodyne_points" and bag.odometry is None
+        assert len(bag) == FRAMES
+        for i in range(FRAMES):
+            assert np.array_equal(bag.scan(i), folder.scan(i))
+            a, b = bag.point_meta(i), folder.point_meta(i)
+            assert np.array_equal(a["time_s"], b["time_s"]) and np.array_equal(a["ring"], b["ring"])
+        assert np.array_equal(bag.times, folder.times)
+        assert np.allclose(bag.poses, folder.poses, atol=1e-8, rtol=0)
+
+
+def test_localizing_the_bag_gives_the_folders_trajectory(drives, small_town_map, tmp_path):
+    _, map_dir = small_town_map
+    s = LocalizerSettings()
+    s.observation.rays = 200
+    runs = {}
+    for fmt in ("kitti", "mcap"):
+        out = tmp_path / fmt
+        localize_sequence(
+            drives[fmt], map_dir, out, s, RunOptions(mode="tracking", seed=4, threads=2, plots=False)
+        )
+        runs[fmt] = np.loadtxt(out / "estimate_kitti.txt")
+        summary = json.loads((out / "summary.json").read_text())
+    assert runs["kitti"].shape == (FRAMES, 12)
+    assert np.allclose(runs["mcap"], runs["kitti"], atol=1e-6, rtol=0)
+    assert summary["odometry_source"].startswith("/odom")
+
+
+def _cli(*args):
+    code = "import sys; from rangemcl.cli import main; sys.argv[0] = 'rangemcl'; main()"
+    return subprocess.run([sys.executable, "-c", code, *map(str, args)], capture_output=True, text=True)
+
+
+def test_bad_bags_are_one_line(drives, small_town_map, tmp_path):
+    _, map_dir = small_town_map
+    bag = drives["rosbag1"]
+    cases = {
+        "no topic /scan (LiDAR scans); the bag has: /actors (MarkerArray, 20), /ground_truth": (
+            bag, "--lidar-topic", "/scan"
+        ),
+        "topic /imu holds sensor_msgs/msg/Imu, not sensor_msgs/msg/PointCloud2": (bag, "--lidar-topic", "/imu"),
+    }
+    # a bag without any PointCloud2
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    empty = tmp_path / "strings.bag"
+    with Writer(empty) as w:
+        con = w.add_connection("/chatter", "std_msgs/msg/String", typestore=ts)
+        w.write(con, 10**9, ts.serialize_ros1(ts.types["std_msgs/msg/String"](data="hi"), "std_msgs/msg/String"))
+    cases["no sensor_msgs/PointCloud2 topic; the bag has: /chatter (String, 1)"] = (empty,)
+    truncated = tmp_path / "truncated.bag"
+    truncated.write_bytes(bag.read_bytes()[: bag.stat().st_size // 2])
+    cases["cannot read the bag"] = (truncated,)
+    mc = next(drives["mcap"].glob("*.mcap"))
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(mc.read_bytes()[: mc.stat().st_size // 3])
+    cases["cannot read the bag "] = (cut,)
+    for expected, (path, *extra) in cases.items():
+        out = tmp_path / f"out{len(extra)}{path.stem}"
+        r = _cli("localize", path, "--map", map_dir, "--out", out, "--mode", "tracking", *extra)
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1, r.stderr
+        assert expected.strip() in lines[0] and str(path) in lines[0], lines[0]
+        assert not out.exists()
