@@ -14,10 +14,10 @@ import pytest
 
 pytest.importorskip("rosbags")
 
-from rangemcl.localize import RunOptions, localize_sequence  # noqa: E402
-from rangemcl.mcl import LocalizerSettings  # noqa: E402
-from rangemcl.sources import open_source  # noqa: E402
-from simbed.record import record  # noqa: E402
+from rangemcl.localize import RunOptions, localize_sequence
+from rangemcl.mcl import LocalizerSettings
+from rangemcl.sources import open_source
+from simbed.record import record
 
 FRAMES = 20
 
@@ -212,9 +212,15 @@ def test_bad_bags_are_one_line(drives, small_town_map, tmp_path):
     bag = drives["rosbag1"]
     cases = {
         "no topic /scan (LiDAR scans); the bag has: /actors (MarkerArray, 20), /ground_truth": (
-            bag, "--lidar-topic", "/scan"
+            bag,
+            "--lidar-topic",
+            "/scan",
         ),
-        "topic /imu holds sensor_msgs/msg/Imu, not sensor_msgs/msg/PointCloud2": (bag, "--lidar-topic", "/imu"),
+        "topic /imu holds sensor_msgs/msg/Imu, not sensor_msgs/msg/PointCloud2": (
+            bag,
+            "--lidar-topic",
+            "/imu",
+        ),
     }
     # a bag without any PointCloud2
     from rosbags.rosbag1 import Writer
@@ -224,7 +230,8 @@ def test_bad_bags_are_one_line(drives, small_town_map, tmp_path):
     empty = tmp_path / "strings.bag"
     with Writer(empty) as w:
         con = w.add_connection("/chatter", "std_msgs/msg/String", typestore=ts)
-        w.write(con, 10**9, ts.serialize_ros1(ts.types["std_msgs/msg/String"](data="hi"), "std_msgs/msg/String"))
+        msg = ts.types["std_msgs/msg/String"](data="hi")
+        w.write(con, 10**9, ts.serialize_ros1(msg, "std_msgs/msg/String"))
     cases["no sensor_msgs/PointCloud2 topic; the bag has: /chatter (String, 1)"] = (empty,)
     truncated = tmp_path / "truncated.bag"
     truncated.write_bytes(bag.read_bytes()[: bag.stat().st_size // 2])
