@@ -247,3 +247,63 @@ def test_bad_bags_are_one_line(drives, small_town_map, tmp_path):
         assert r.returncode == 2 and len(lines) == 1, r.stderr
         assert expected.strip() in lines[0] and str(path) in lines[0], lines[0]
         assert not out.exists()
+
+
+def _ouster_like_bag(path, frames=4):
+    """A ROS 2 bag of start-stamped scans with Ouster's ``t`` (uint32 ns after the stamp), no TF."""
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    T = ts.types
+    rng = np.random.default_rng(0)
+    with Writer(path, version=9) as w:
+        con = w.add_connection("/os_cloud_node/points", "sensor_msgs/msg/PointCloud2", typestore=ts)
+        for k in range(frames):
+            ns = 5 * 10**9 + k * 100_000_000
+            n = 1000
+            dt = np.dtype(
+                {
+                    "names": ["x", "y", "z", "t", "ring"],
+                    "formats": ["<f4", "<f4", "<f4", "<u4", "<u2"],
+                    "offsets": [0, 4, 8, 16, 20],
+                    "itemsize": 24,
+                }
+            )
+            rec = np.zeros(n, dt)
+            rec["x"], rec["y"], rec["z"] = rng.normal(0, 10, (3, n)).astype(np.float32)
+            rec["t"] = np.linspace(0, 99_000_000, n).astype(np.uint32)
+            fields = [T["sensor_msgs/msg/PointField"](name=nm, offset=dt.fields[nm][1], datatype=d, count=1)
+                      for nm, d in (("x", 7), ("y", 7), ("z", 7), ("t", 6), ("ring", 4))]  # fmt: skip
+            stamp = T["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9)
+            msg = T["sensor_msgs/msg/PointCloud2"](
+                header=T["std_msgs/msg/Header"](stamp=stamp, frame_id="os_sensor"),
+                height=1, width=n, fields=fields, is_bigendian=False, point_step=24, row_step=24 * n,
+                data=np.frombuffer(rec.tobytes(), np.uint8), is_dense=True,
+            )  # fmt: skip
+            w.write(con, ns, ts.serialize_cdr(msg, msg.__msgtype__))
+
+
+def test_start_stamped_scans_and_the_mount(tmp_path):
+    from rangemcl.errors import InputError
+    from rangemcl.ros.bag import BagOptions
+
+    path = tmp_path / "ouster"
+    _ouster_like_bag(path)
+    with pytest.raises(
+        InputError, match=r"no static transform from base_link to the scans' frame 'os_sensor'"
+    ):
+        open_source(path)
+    opts = BagOptions(sensor_to_base=(0.1, 0, 1.8, 0, 0, 90))
+    with open_source(path, bag_options=opts) as bag:
+        assert bag.meta["scan_stamp"] == "start"
+        assert np.allclose(bag.times, 5.099 + 0.1 * np.arange(4))  # moved to the sweep's end
+        t = bag.point_meta(2)["time_s"]
+        assert t.dtype == np.float32 and np.isclose(t.min(), -0.099) and t.max() == 0
+        assert bag.meta["sensor_to_base"]["xyz_m"] == [0.1, 0.0, 1.8]
+        assert bag.poses is None and bag.odometry is None
+    with open_source(
+        path, bag_options=BagOptions(sensor_to_base=(0, 0, 0, 0, 0, 0), scan_stamp="end")
+    ) as bag:
+        assert np.allclose(bag.times, 5.0 + 0.1 * np.arange(4))
+        assert bag.point_meta(0)["time_s"].max() > 0.09
