@@ -18,14 +18,19 @@ from rangemcl.errors import InputError
 
 
 def open_source(path: str | os.PathLike, *, require_poses: bool = False, bag_options=None):
-    """The recording at ``path`` as a sequence: a folder with ``velodyne/`` (KITTI layout), or a bag
+    """The recording at ``path`` as a sequence: a folder with ``velodyne/`` (KITTI layout), a bag
     (``.bag``, ``.mcap``, ``.db3`` or a ROS 2 bag folder, read with ``bag_options``, a
-    :class:`rangemcl.ros.bag.BagOptions`)."""
+    :class:`rangemcl.ros.bag.BagOptions`), or a folder of ``.pcd``/``.ply`` scans
+    (:mod:`rangemcl.scanfolder`; ``bag_options.poses_file`` is its poses file)."""
     from rangemcl.ros.bag import BagOptions, is_bag, open_bag
+    from rangemcl.scanfolder import is_scan_folder, load_scan_folder
 
     p = Path(path)
     if is_bag(p):
         return open_bag(p, bag_options or BagOptions(), require_poses=require_poses)
+    if is_scan_folder(p):
+        poses = bag_options.poses_file if bag_options is not None else None
+        return load_scan_folder(p, poses_file=poses, require_poses=require_poses)
     if bag_options is not None and _bag_only(bag_options):
         raise InputError(f"{p}: topic options are for bags; this is a {'folder' if p.is_dir() else 'file'}")
     return load_sequence(p, require_poses=require_poses)
