@@ -317,6 +317,39 @@ def build_map(
         )
 
 
+@app.command()
+def convert(
+    source: Path = typer.Argument(
+        ..., help="A KITTI-layout folder, a bag (.bag, .mcap, ROS 2 folder) or a folder of .pcd/.ply scans."
+    ),
+    out: Path = typer.Option(..., help="The folder (kitti, mcap, rosbag2) or .bag file (rosbag1) to write."),
+    fmt: str = typer.Option("mcap", "--format", help="kitti, mcap, rosbag2 or rosbag1."),
+    overwrite: bool = typer.Option(False, help="Replace the sequence or bag at OUT."),
+    poses: Path = typer.Option(None, help="The LiDAR's poses (TUM or KITTI) when the source has none."),
+    lidar_topic: str = _LIDAR_TOPIC,
+    imu_topic: str = _IMU_TOPIC,
+    odom_topic: str = _ODOM_TOPIC,
+    sensor_to_base: str = _SENSOR_TO_BASE,
+    point_time_field: str = _POINT_TIME_FIELD,
+    scan_stamp: str = _SCAN_STAMP,
+) -> None:
+    """Write a recording as a KITTI folder or a bag: scans with their per-point fields, times, poses,
+    odometry, IMU roll and pitch, and its meta (a simbed drive opens in Foxglove or RViz this way)."""
+    import sys
+
+    from rangemcl.convert import convert as run
+
+    bag = _bag_options(
+        lidar_topic, imu_topic, odom_topic, sensor_to_base, poses, point_time_field, scan_stamp
+    )
+    try:
+        n = run(source, out, fmt, bag_options=bag, overwrite=overwrite, progress=sys.stderr.isatty())
+    except KeyboardInterrupt:
+        typer.echo(f"interrupted: {out} holds the frames written so far (marked complete: false)", err=True)
+        raise typer.Exit(130) from None
+    typer.echo(f"wrote {out}: {n} frames ({fmt})")
+
+
 @app.command("import-mesh")
 def import_mesh_cmd(
     mesh: Path = typer.Argument(..., help="A triangle mesh file (PLY, OBJ)."),

@@ -28,6 +28,10 @@ def open_source(path: str | os.PathLike, *, require_poses: bool = False, bag_opt
     p = Path(path)
     if is_bag(p):
         return open_bag(p, bag_options or BagOptions(), require_poses=require_poses)
+    if p.is_dir() and not (p / "velodyne").is_dir():
+        storage = [f for f in p.iterdir() if f.suffix in (".mcap", ".db3")]
+        if len(storage) == 1:  # a ROS 2 bag folder without metadata.yaml (written at the end)
+            return open_bag(storage[0], bag_options or BagOptions(), require_poses=require_poses)
     if is_scan_folder(p):
         poses = bag_options.poses_file if bag_options is not None else None
         return load_scan_folder(p, poses_file=poses, require_poses=require_poses)

@@ -307,3 +307,25 @@ def test_start_stamped_scans_and_the_mount(tmp_path):
     ) as bag:
         assert np.allclose(bag.times, 5.0 + 0.1 * np.arange(4))
         assert bag.point_meta(0)["time_s"].max() > 0.09
+
+
+def test_convert_round_trip_and_a_folder_without_metadata(drives, tmp_path):
+    import shutil
+
+    from rangemcl.convert import convert
+
+    folder = open_source(drives["kitti"])
+    assert convert(drives["kitti"], tmp_path / "a.bag", "rosbag1") == FRAMES
+    assert convert(tmp_path / "a.bag", tmp_path / "back", "kitti") == FRAMES
+    with open_source(tmp_path / "a.bag") as bag:
+        assert_same_frames(bag, folder)
+    back = open_source(tmp_path / "back")
+    assert_same_frames(back, folder)
+    assert back.meta["sensor"] == folder.meta["sensor"] and back.meta["converted_from"].endswith("a.bag")
+    # a ROS 2 bag folder whose metadata.yaml is missing (it is written last) opens by its storage file
+    shutil.copytree(drives["mcap"], tmp_path / "nometa")
+    (tmp_path / "nometa" / "metadata.yaml").unlink()
+    with open_source(tmp_path / "nometa") as bag:
+        assert len(bag) == FRAMES
+    r = _cli("convert", drives["kitti"], "--out", tmp_path / "a.bag", "--format", "rosbag1")
+    assert r.returncode == 2 and "exists (give --overwrite to replace the bag)" in r.stderr

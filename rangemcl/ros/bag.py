@@ -252,8 +252,8 @@ class BagWriter:
         point_meta: dict[str, Any] | None = None,
         actors: list[dict] | None = None,
     ) -> int:
-        """Write one frame. ``actors``: dicts with ``name``, ``kind``, ``xyz``, ``quat_wxyz``, ``half``
-        (box half-sizes, m) and ``rgba``."""
+        """Write one frame (``pose``: the LiDAR's true pose, or None when there is none). ``actors``: dicts
+        with ``name``, ``kind``, ``xyz``, ``quat_wxyz``, ``half`` (box half-sizes, m) and ``rgba``."""
         if self._closed:
             raise RuntimeError(f"{self.out}: BagWriter is closed")
         t = float(time_s)
@@ -288,12 +288,12 @@ class BagWriter:
             is_dense=True,
         )
         self._write("/points", ns, msg)
-        T_world_base = np.asarray(pose, np.float64) @ self._T_sensor_base
+        T_world_base = None if pose is None else np.asarray(pose, np.float64) @ self._T_sensor_base
         T_odom_base = None if odometry is None else np.asarray(odometry, np.float64) @ self._T_sensor_base
         transforms = []
         if self._frames == 0:
             static = [self._transform(ns, "base_link", "lidar", self.T_base_sensor)]
-            if T_odom_base is not None:
+            if T_odom_base is not None and T_world_base is not None:
                 static.append(self._transform(ns, "map", "odom", T_world_base @ invert_rigid(T_odom_base)))
             self._write("/tf_static", ns, types[TF](transforms=static))
         zero = np.zeros(3)
@@ -308,9 +308,12 @@ class BagWriter:
             self._prev_odom = (t, T_odom_base)
             self._write("/odom", ns, self._odometry(ns, "odom", "base_link", T_odom_base, v, w))
             transforms.append(self._transform(ns, "odom", "base_link", T_odom_base))
-        self._write(TRUTH_TOPIC, ns, self._odometry(ns, "map", "base_link_truth", T_world_base, zero, zero))
-        transforms.append(self._transform(ns, "map", "base_link_truth", T_world_base))
-        self._write("/tf", ns, types[TF](transforms=transforms))
+        if T_world_base is not None:
+            truth = self._odometry(ns, "map", "base_link_truth", T_world_base, zero, zero)
+            self._write(TRUTH_TOPIC, ns, truth)
+            transforms.append(self._transform(ns, "map", "base_link_truth", T_world_base))
+        if transforms:
+            self._write("/tf", ns, types[TF](transforms=transforms))
         if imu_roll_pitch is not None:
             self._write("/imu", ns, self._imu(ns, imu_roll_pitch, T_odom_base))
         if actors is not None:
@@ -613,7 +616,9 @@ def _pick_topic(
                 f"{path}: topic {given} holds {topics[given].msgtype}, not {' or '.join(msgtypes)} ({what})"
             )
         return given
-    found = [n for n, t in topics.items() if _kind(t.msgtype) in {_kind(m) for m in msgtypes}]
+    found = [
+        n for n, t in topics.items() if _kind(t.msgtype) in {_kind(m) for m in msgtypes} and t.msgcount > 0
+    ]
     for name in usual:
         if name in found:
             return name
@@ -793,7 +798,8 @@ def _open(reader, root: Path, opt: BagOptions, require_poses: bool) -> BagSequen
     if opt.poses_file is not None:
         seq.poses = poses_at_scans(Path(opt.poses_file), seq.times)
     else:
-        truth_topic = opt.truth_topic or (TRUTH_TOPIC if TRUTH_TOPIC in reader.topics else None)
+        present = TRUTH_TOPIC in reader.topics and reader.topics[TRUTH_TOPIC].msgcount > 0
+        truth_topic = opt.truth_topic or (TRUTH_TOPIC if present else None)
         if truth_topic is not None:
             _pick_topic(reader, truth_topic, (ODOMETRY,), (), "ground truth", root)
             st, P, _, _ = _stamped_poses(reader, truth_topic)
