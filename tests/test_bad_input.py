@@ -315,6 +315,30 @@ CASES: list[tuple[str, list[str], dict]] = [
     (BUILD + " --resume", ["state.json", "not a build state"], {"o/.build/state.json": "[1]"}),
     (BUILD + " --resume", ["another sequence or other settings"], {"o/.build/state.json": '{"version": 0}'}),
     (BUILD, ["interrupted build", "--resume"], {"o/.build/state.json": "{}"}),
+    # --- rangemcl convert (issue 15)
+    ("rangemcl convert {d}/nope --out {d}/o.bag --format rosbag1", ["nope", "no such sequence folder"], {}),
+    ("rangemcl convert {d}/seq --out {d}/o --format bag", ["--format 'bag'", "kitti, mcap"], {}),
+    (
+        "rangemcl convert {d}/seq --out {d}/o --format rosbag1",
+        ["o", "a ROS 1 bag is a file ending in .bag"],
+        {},
+    ),
+    ("rangemcl convert {d}/seq --out {d}/o.bag --format mcap", ["o.bag", "is a folder"], {}),
+    ("rangemcl convert {d}/seq --out {d}/seq --format kitti", ["seq", "--overwrite"], {}),
+    ("rangemcl convert {d}/seq --out {d}/o --lidar-topic /points", ["seq", "topic options are for bags"], {}),
+    ("rangemcl convert {d}/x.bag --out {d}/o", ["x.bag", "cannot read the bag"], {"x.bag": "not a bag\n"}),
+    # --- bags and odometry sources for localize and build-map (issue 15)
+    (LOC + " --odometry wheel", ["--odometry 'wheel'", "kiss-icp or poses:FILE"], {}),
+    (LOC + " --odometry poses:{d}/nope.txt", ["nope.txt", "cannot read poses"], {}),
+    (LOC + " --sensor-to-base 1,2,3", ["--sensor-to-base", "x,y,z,roll,pitch,yaw"], {}),
+    (LOC + " --scan-stamp middle", ["--scan-stamp 'middle'", "start or end"], {}),
+    (LOC + " --poses {d}/nope.txt", ["nope.txt", "no such poses file"], {}),
+    (
+        "rangemcl localize {d}/x.mcap --map {d}/map --out {d}/o",
+        ["x.mcap", "cannot read the bag"],
+        {"x.mcap": "junk"},
+    ),
+    ("rangemcl build-map {d}/x.bag --out {d}/o", ["x.bag", "cannot read the bag"], {"x.bag": "junk"}),
     # --- rangemcl import-mesh
     ("rangemcl import-mesh {d}/nope.ply --out {d}/o", ["nope.ply", "does not exist"], {}),
     ("rangemcl import-mesh {d}/seq --out {d}/o", ["seq", "not a file"], {}),
