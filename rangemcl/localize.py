@@ -10,6 +10,7 @@ A results folder holds::
                          poses.txt (so ``evo_ape kitti poses.txt estimate_kitti.txt`` compares them)
     estimate_tum.txt     the estimated LiDAR poses as TUM lines (time x y z qx qy qz qw)
     summary.json         convergence frame, counts, timings, odometry source and calibration, device, seed
+    odometry_kiss_icp.txt  with ``--odometry kiss-icp``: the LiDAR poses kiss-icp gave (reused by --resume)
     metrics.json         the paper's metrics (:mod:`rangemcl.evaluate`) when the sequence has poses
     particles.npz        particle clouds at a few frames
     trajectory.png, error.png, particles.png
@@ -79,6 +80,7 @@ class RunOptions:
     checkpoint_every: int = 10  # frames between two checkpoints of the filter's state
 
 
+KISS_ODOMETRY = "odometry_kiss_icp.txt"  # --odometry kiss-icp: the LiDAR poses it gave, in the results
 CHECKPOINT = Path(".resume") / "state.npz"  # the filter's state at the last checkpoint, in the results folder
 
 
@@ -247,7 +249,25 @@ class LocalizationPipeline:
             raise InputError(f"{seq.root}: the sequence has no scans")
         self.map = MeshMap.load(self.map_dir)
         check_map_frame(seq, self.map)
-        self.odo, self.odo_source = odometry_xyyaw(seq, opt.odometry_from_poses, opt.odometry)
+        self.kiss_poses = None
+        if opt.odometry == "kiss-icp":  # computed once: a resumed run reads what the run wrote
+            cached = self.out_dir / KISS_ODOMETRY
+            if opt.resume and cached.is_file():
+                from rangemcl.dataset import read_poses_txt
+
+                self.kiss_poses = read_poses_txt(cached)
+                if len(self.kiss_poses) != len(seq):
+                    raise InputError(f"{cached}: {len(self.kiss_poses)} poses for {len(seq)} scans")
+            else:
+                from rangemcl.lidar_odometry import kiss_icp_odometry
+
+                self.kiss_poses = kiss_icp_odometry(seq, progress=opt.progress)
+            self.odo, self.odo_source = (
+                xyyaw_of(self.kiss_poses),
+                f"kiss-icp (LiDAR odometry, {KISS_ODOMETRY})",
+            )
+        else:
+            self.odo, self.odo_source = odometry_xyyaw(seq, opt.odometry_from_poses, opt.odometry)
         self.first = int(opt.first_frame)
         if not 0 <= self.first < len(seq):
             raise InputError(f"first frame {self.first} out of range (the sequence has {len(seq)} frames)")
@@ -282,6 +302,8 @@ class LocalizationPipeline:
             loc.start_at(start, opt.particles)
         if not opt.resume:
             write_config(self.settings, self.out_dir / "config.yaml")  # feeds back in with --config
+            if self.kiss_poses is not None:
+                write_poses_txt(self.out_dir / KISS_ODOMETRY, self.kiss_poses)
         self.log = FrameLog.empty(self.last - self.first)
 
     def fingerprint(self) -> dict:
