@@ -232,7 +232,9 @@ def sweep(
 @app.command("build-map")
 def build_map(
     seq_dir: Path = typer.Argument(
-        ..., help="A sequence folder (KITTI layout) with poses, or a bag (.bag, .mcap, ROS 2 folder)."
+        ...,
+        help="A sequence folder (KITTI layout) with poses, a bag (.bag, .mcap, ROS 2 folder) or a "
+        "folder of .pcd/.ply scans.",
     ),
     out: Path = typer.Option(..., help="Map folder to write."),
     config: Path = typer.Option(None, help="YAML settings (defaults: see the map's config.yaml)."),
@@ -423,7 +425,7 @@ def map_quality_cmd(
 @app.command()
 def localize(
     seq_dir: Path = typer.Argument(
-        ..., help="A sequence folder (KITTI layout) or a bag (.bag, .mcap, ROS 2 bag folder)."
+        ..., help="A sequence folder (KITTI layout), a bag (.bag, .mcap, ROS 2 folder) or .pcd/.ply scans."
     ),
     map_dir: Path = typer.Option(..., "--map", help="A map folder (rangemcl build-map or import-mesh)."),
     out: Path = typer.Option(..., help="Results folder to write."),
@@ -540,7 +542,7 @@ def localize(
     )
     if s["odometry_source"] != "odometry.txt":
         typer.echo(f"  odometry from {s['odometry_source']}")
-    if s.get("calib_source", "calib.txt") != "calib.txt":
+    if s.get("calib_source", "calib.txt").startswith("identity (no calib.txt"):  # said, never assumed
         typer.echo(f"  sensor-to-pose calibration: {s['calib_source']}")
     m = s.get("metrics")
     if m:
