@@ -450,6 +450,13 @@ def localize(
         "TUM or KITTI) instead of the sequence's own odometry.",
     ),
     poses: Path = typer.Option(None, help="Bags: ground-truth LiDAR poses (TUM or KITTI) for the metrics."),
+    viz: bool = typer.Option(
+        False,
+        help="Stream the run to the rerun viewer: map, scan, particles, estimate, truth (the [viz] extra).",
+    ),
+    viz_out: Path = typer.Option(
+        None, help="Save the run as a rerun .rrd file (headless; `rerun FILE` shows it)."
+    ),
     lidar_topic: str = _LIDAR_TOPIC,
     imu_topic: str = _IMU_TOPIC,
     odom_topic: str = _ODOM_TOPIC,
@@ -499,6 +506,8 @@ def localize(
         init_pose=start,
         odometry_from_poses=odometry_from_poses,
         odometry=odometry,
+        viz=viz,
+        viz_out=None if viz_out is None else str(viz_out),
         bag=_bag_options(
             lidar_topic, imu_topic, odom_topic, sensor_to_base, poses, point_time_field, scan_stamp
         ),

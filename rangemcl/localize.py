@@ -53,6 +53,7 @@ from rangemcl.mcl import (
     se2_between,
 )
 from rangemcl.sources import open_source
+from rangemcl.viz import RunViewer, check_rrd_path, rerun_module
 
 FRAME_COLUMNS = (
     "frame,time_s,x,y,yaw,particles,converged,updated,resampled,skipped_scan,recovered,"
@@ -74,6 +75,8 @@ class RunOptions:
     odometry_from_poses: bool = False  # without odometry.txt: derive it from poses.txt (and say so)
     odometry: str | None = None  # None: the sequence's own; "kiss-icp"; "poses:FILE" (KITTI or TUM)
     bag: Any = None  # rangemcl.ros.bag.BagOptions for a bag (topics, mounting, point times)
+    viz: bool = False  # --viz: stream the run to the rerun viewer
+    viz_out: str | None = None  # --viz-out FILE: save the run as a rerun .rrd
     plots: bool = True
     progress: bool = False
     resume: bool = False  # continue the interrupted run in the results folder (its checkpoint)
@@ -208,6 +211,7 @@ class LocalizationPipeline:
             vetoed_frames=[],
         )
         self.metrics: dict | None = None
+        self.viz = RunViewer.disabled()
 
     def run(self) -> dict:
         self.load()  # sequence, map, odometry, frame range, sensor height: every check before any output
@@ -276,6 +280,10 @@ class LocalizationPipeline:
         self.truth = xyyaw_of(seq.poses) if seq.poses is not None else None
         if self.opt.mode == "tracking":
             self.events["converged_frame"] = self.first
+        if opt.viz or opt.viz_out:  # the extra and the file's folder, before any work
+            rerun_module()
+        if opt.viz_out:
+            check_rrd_path(opt.viz_out)
 
     def start_filter(self) -> None:
         opt, seq = self.opt, self.seq
@@ -305,6 +313,9 @@ class LocalizationPipeline:
             if self.kiss_poses is not None:
                 write_poses_txt(self.out_dir / KISS_ODOMETRY, self.kiss_poses)
         self.log = FrameLog.empty(self.last - self.first)
+        if opt.viz or opt.viz_out:
+            self.viz = RunViewer.open(f"localize {Path(seq.root).name}", out_rrd=opt.viz_out, spawn=opt.viz)
+            self.viz.log_mesh_map(self.map)
 
     def fingerprint(self) -> dict:
         """What decides a run's results: a resumed run must have the same."""
@@ -404,6 +415,18 @@ class LocalizationPipeline:
                     delta, points, fire_time_s=fire, frame_period_s=period, roll_pitch=rp, dt_s=dt
                 )
                 self._record(k, i, info)
+                if self.viz.enabled:
+                    self.viz.frame(
+                        i,
+                        float(seq.times[i]) if seq.times is not None else i * (period or 0.1),
+                        scan_sensor=points,
+                        estimate=_poses_4x4(info.estimate[None], loc, seq, i)[0],
+                        truth=None if seq.poses is None else seq.poses[i],
+                        particles=loc.particles,
+                        weights=loc.weights,
+                        particle_z=loc.sensor_z(loc.particles[:, :2]),
+                        converged=info.converged,
+                    )
                 csv.write(self._csv_line(i, info))
                 csv.flush()
                 log.done = k + 1
@@ -415,6 +438,7 @@ class LocalizationPipeline:
         finally:
             csv.close()
             bar.close()
+            self.viz.close()
         log.wall_s = time.perf_counter() - clock
         log.trim()
 

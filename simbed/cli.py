@@ -71,6 +71,8 @@ def record(
         help="kitti (folder), mcap (ROS 2 bag folder holding one .mcap), rosbag2 (ROS 2 bag folder, "
         "SQLite) or rosbag1 (.bag file); bags need the [ros] extra.",
     ),
+    viz: bool = typer.Option(False, help="Stream the scene, car, sweeps and actors to the rerun viewer."),
+    viz_out: Path = typer.Option(None, help="Save the drive as a rerun .rrd file (headless)."),
 ) -> None:
     """Drive a route and record LiDAR, ground-truth poses, odometry and IMU in the KITTI layout or as a
     ROS bag / MCAP (PointCloud2 with per-point time and ring, IMU, odometry, TF, truth, actors).
@@ -98,6 +100,8 @@ def record(
             loop=loop,
             actor_paths=actor_paths,
             fmt=fmt,
+            viz=viz,
+            viz_out=viz_out,
         )
     except KeyboardInterrupt:
         from rangemcl.errors import InputError

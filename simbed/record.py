@@ -60,6 +60,8 @@ def record(
     loop: bool = False,
     actor_paths: str | os.PathLike | None = None,
     fmt: str = "kitti",
+    viz: bool = False,
+    viz_out: str | os.PathLike | None = None,
 ) -> RecordSummary:
     """Drive ``route`` in ``scene`` and write ``frames`` LiDAR frames to ``out``.
 
@@ -74,7 +76,8 @@ def record(
 
     ``fmt`` ``kitti`` writes a KITTI-layout folder; ``mcap``, ``rosbag2`` and ``rosbag1`` a bag
     (:class:`rangemcl.ros.bag.BagWriter`: PointCloud2 with per-point time and ring, IMU, odometry, TF,
-    the true pose and the actors' boxes), which is complete only once closed.
+    the true pose and the actors' boxes), which is complete only once closed. ``viz`` streams the scene,
+    the car, its sweeps and the actors to the rerun viewer, ``viz_out`` saves them as an ``.rrd``.
     """
     out = Path(out)
     if frames < 1:
@@ -99,6 +102,12 @@ def record(
                 else f"{out}: a {fmt} bag is a folder; give a name without .bag"
             )
     check_writable(out)
+    from rangemcl.viz import DriveViewer, check_rrd_path, rerun_module
+
+    if viz or viz_out is not None:  # the extra and the file's folder, before anything is written
+        rerun_module()
+    if viz_out is not None:
+        check_rrd_path(viz_out)
     rng = np.random.default_rng(seed)
     if loop and not is_waypoint_file(route):
         raise InputError(f"--loop is for waypoint files; route {route!r} is not one")
@@ -127,6 +136,9 @@ def record(
         for line in dropped:
             print(f"simbed: warning: {line}", file=sys.stderr)
     drive = Drive(world, path, spec, rng, skew=skew)
+    viewer = DriveViewer.open(f"simbed record {Path(scene).stem} {route}", out_rrd=viz_out, spawn=viz)
+    if viewer.enabled:
+        viewer.log_map(*world.static_triangles)
     meta = {
         "generator": f"simbed {__version__}",
         "scene": world.path.stem,
@@ -155,7 +167,7 @@ def record(
         from rangemcl.ros.bag import BagWriter
 
         writer = BagWriter(out, fmt, meta=meta, T_base_sensor=spec.T_base_sensor, overwrite=overwrite)
-    with writer, _progress(progress, frames) as bar:
+    with writer, _progress(progress, frames) as bar, viewer:
         for _ in range(frames):
             frame = drive.next_frame()
             s = frame.sweep
@@ -175,6 +187,8 @@ def record(
             summary.frames += 1
             summary.seconds_simulated = frame.time_s
             bar(frame)
+            if viewer.enabled:
+                viewer.record_frame(frame, actors=_actor_boxes(world))
             if frame.route_done:
                 summary.route_done = True
                 break

@@ -348,3 +348,35 @@ def test_kiss_icp_odometry_for_a_bag_without_wheel_odometry(drives, small_town_m
     # drift over 300 frames is measured in tests/rangemcl/test_lidar_odometry.py): the filter holds on
     m = json.loads((out / "metrics.json").read_text())
     assert m["success"] and m["location_rmse_m"] < 0.25
+
+
+def test_viz_out_writes_a_run_that_rerun_reads_back(drives, small_town_map, tmp_path):
+    """``rangemcl localize --viz-out`` (in process: the options it sets) writes an .rrd whose frames
+    rerun's own reader gives back: the map once, one error value per frame, equal to frames.csv's."""
+    pytest.importorskip("rerun")
+    from rerun.chunk import RrdReader
+
+    _, map_dir = small_town_map
+    s = LocalizerSettings()
+    s.observation.rays = 200
+    out, rrd = tmp_path / "run", tmp_path / "run.rrd"
+    localize_sequence(
+        drives["mcap"], map_dir, out, s,
+        RunOptions(mode="tracking", seed=4, threads=2, plots=False, viz_out=str(rrd)),
+    )  # fmt: skip
+    frames, errors, static = [], [], set()
+    for chunk in RrdReader(rrd).stream().to_chunks():
+        if chunk.is_static:
+            static.add(chunk.entity_path)
+        rb = chunk.to_record_batch()
+        if chunk.entity_path == "/metrics/error_m" and not chunk.is_static and "frame" in rb.schema.names:
+            col = next(n for n in rb.schema.names if n.endswith("Scalars:scalars"))
+            frames += rb.column("frame").to_pylist()
+            errors += [v[0] for v in rb.column(col).to_pylist()]
+    assert "/world/map" in static
+    assert sorted(frames) == list(range(FRAMES))
+    truth = open_source(drives["kitti"]).poses[:, :2, 3]
+    est = np.loadtxt(out / "estimate_kitti.txt").reshape(-1, 3, 4)[:, :2, 3]
+    want = np.linalg.norm(est - truth, axis=1)
+    got = np.array(errors)[np.argsort(frames)]
+    assert np.allclose(got, want, atol=1e-3)
