@@ -86,8 +86,19 @@ DRIVE_FIELDS = ("scene", "sensor", "route", "variant", "actors", "drive_seed", "
 
 
 def drive_key(scene, sensor, route, variant, actors, drive_seed, drive_frames) -> str:
-    """A test drive's folder name under ``OUT/drives`` (from a Trial, or a results.csv row's fields)."""
+    """A test drive's folder name under ``OUT/drives`` (from a Trial, or a results.csv row's fields). A
+    scene, route or sensor given as a file path is named by its file's stem and a hash of its absolute
+    path, so that the folder stays under ``OUT`` (``/home/me/s.xml`` would otherwise make it absolute)."""
+    scene, sensor, route = (_name_part(str(v)) for v in (scene, sensor, route))
     return f"{scene}-{sensor}-{route}-v{variant}-a{actors}-d{drive_seed}-n{drive_frames}"
+
+
+def _name_part(value: str) -> str:
+    """``value`` itself when it is a plain name, else ``STEM-HASH8`` of the path it names."""
+    if "/" not in value and os.sep not in value and not value.startswith("."):
+        return value
+    digest = hashlib.sha1(str(Path(value).expanduser().resolve()).encode()).hexdigest()[:8]
+    return f"{Path(value).stem or 'path'}-{digest}"
 
 
 @dataclass

@@ -263,3 +263,18 @@ def test_suite_folders_follow_the_output_policy(tmp_path):
     assert (tmp_path / "mine" / "notes.txt").read_text() == "keep"
     r = trials("--out", str(tmp_path / "x"), "--map", str(tmp_path / "m"), "--report-only", "--overwrite")
     assert r.returncode == 2 and "--overwrite" in r.stderr
+
+
+def test_drive_keys_of_scene_and_route_files_stay_under_out(tmp_path):
+    """A scene or route given as a path names its drive folder by the file's stem and a hash of its absolute
+    path (an absolute --scene used to put the drives outside --out); plain names are kept as they are."""
+    from simbed.trials import drive_key
+
+    plain = drive_key("town_small", "os1-64", "test", 1, 10, 7, 800)
+    assert plain == "town_small-os1-64-test-v1-a10-d7-n800"
+    a = drive_key(str(tmp_path / "my_scene.xml"), "os1-64", str(tmp_path / "loop.txt"), 0, 0, 7, 100)
+    assert "/" not in a and a.startswith("my_scene-") and "-os1-64-loop-" in a
+    assert (tmp_path / "out" / "drives" / a).parent == tmp_path / "out" / "drives"
+    assert a == drive_key(str(tmp_path / "my_scene.xml"), "os1-64", str(tmp_path / "loop.txt"), 0, 0, 7, 100)
+    other = drive_key(str(tmp_path / "elsewhere" / "my_scene.xml"), "os1-64", "test", 0, 0, 7, 100)
+    assert other.split("-")[1] != a.split("-")[1]  # another file of the same name: another folder
