@@ -3,9 +3,11 @@
 :func:`generate_town` writes a MuJoCo scene (``town.xml``), its height field (``town_terrain.bin``), the
 terrain's texture (``town_ground.img``, a PNG) and a sidecar (``town.yaml``) that :func:`load_town_info`
 reads back into a :class:`TownInfo`. All randomness comes from ``np.random.default_rng(seed)``: the same
-seed writes byte-identical files.
+seed and style write byte-identical files. Sizes, offsets, spacings and random ranges are the fields of a
+:class:`TownStyle`; the towns shipped in ``scenes/`` are the :class:`TownPreset` values of
+:data:`SHIPPED_TOWNS`.
 
-What a town holds (world frame: metres, z up, the town centred on the origin):
+What a town holds with the default style (world frame: metres, z up, the town centred on the origin):
 
 * **Roads**: a jittered grid of junction nodes (60–90 m apart) with some grid edges removed; the graph
   stays connected, every node keeps degree ≥ 2 (no dead ends) and it keeps loops. Each edge is a straight
@@ -39,37 +41,376 @@ import json
 import math
 import re
 import shutil
-import struct
-import zlib
 from collections import defaultdict
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import yaml
+from PIL import Image
 
 from rangemcl.errors import InputError
 from rangemcl.se2 import wrap_angle
 
-ROAD_WIDTH_M = 8.0
-LANE_WIDTH_M = 3.5
-JUNCTION_RADIUS_M = 8.0
-RAMP_START_M = 7.5  # road boxes start (flat) this far from a node; the grade runs between the two
-MAX_GRADE = 0.025
-FLAT_HALF_WIDTH_M = 9.5  # terrain equals the road surface this far from a centre line
-BLEND_M = 16.0  # ... and blends into the natural relief over this distance
-RELIEF_M = 1.3  # peak-to-peak natural relief
-PARK_OFFSET_M = 4.7  # parked-car centre from the road centre line
-PARK_PITCH_M = 6.5  # parking spots along a road
-POLE_OFFSET_M = 6.6
-TREE_OFFSET_M = 7.8
-BUILDING_MIN_OFFSET_M = 9.5  # nearest building / wall face from any road centre line
-ROAD_THICKNESS_M = 0.2
 CAR_XML = Path(__file__).resolve().parents[1] / "scenes" / "car.xml"
-SHIPPED_TOWNS = {"town_small": (1, 200.0), "town_medium": (3, 300.0), "town_large": (2, 600.0)}
-"""Scenes shipped in ``scenes/``: name -> (seed, size_m). town_medium is the second town of the
-global-localization suites (issue 13: another seed and size than town_large's)."""
+
+Range = tuple[float, float]
+"""A closed interval (low, high) that a value is drawn from uniformly, unless its field says otherwise."""
+
+# The ground texture's colours (sRGB 0..255); grass is shaded by the relief, ± this fraction at its extremes.
+_ASPHALT_RGB = (56, 56, 61)
+_PARKING_RGB = (74, 74, 79)
+_SIDEWALK_RGB = (152, 150, 144)
+_GRASS_RGB = (92, 124, 70)
+_GRASS_SHADE_FRAC = 0.12
+_N_BUILDING_MATERIALS = 5  # building0 .. building4 in the XML's assets
+
+
+# ------------------------------------------------------------------------------------------------ parameters
+
+
+@dataclass(frozen=True)
+class TownStyle:
+    """What the town generator draws from: sizes, offsets, spacings and random ranges, with their units.
+
+    Distances are metres (``_m``) in the ground plane unless a field says otherwise; ``_frac`` is a fraction
+    of another quantity that the field names; ``_prob`` a probability; a :data:`Range` ``(low, high)`` is
+    drawn from uniformly. Offsets beside a road are measured from its centre line. The defaults write the
+    towns in ``scenes/`` (:data:`SHIPPED_TOWNS`). Invalid values raise one :class:`InputError` line naming
+    the field; ``dataclasses.replace(style, field=value)`` checks again.
+    """
+
+    # roads
+    road_width_m: float = 8.0
+    """Width of a two-way road: two lanes plus margins (the road box, the asphalt paint)."""
+    lane_width_m: float = 3.5
+    """Width of one lane; the spawn pose lies on the right lane's centre, half of it from the centre line."""
+    road_thickness_m: float = 0.2
+    """Thickness of the road boxes and junction discs, whose tops are the road surface."""
+    junction_radius_m: float = 8.0
+    """Radius of the flat junction disc on each node; frontages, poles, trees and parking start beyond it."""
+    ramp_start_m: float = 7.5
+    """A road box starts (flat) this far from its node; the grade runs between the two ends."""
+    max_grade_m_per_m: float = 0.025
+    """Steepest road grade, rise over run: node heights are relaxed from the relief until roads keep it."""
+
+    # road graph
+    graph_margin_m: float = 25.0
+    """The grid's outer junctions lie this far inside the town's border (before jitter)."""
+    block_pitch_m: float = 75.0
+    """Wanted distance between neighbouring grid junctions: a side of the town has
+    ``max(2, round((size_m - 2 graph_margin_m) / block_pitch_m) + 1)`` junctions, spread over the span."""
+    max_block_pitch_m: float = 85.0
+    """Largest distance between neighbouring grid junctions (a wider grid shrinks toward the centre)."""
+    node_jitter_frac: Range = (-0.12, 0.12)
+    """Random offset of each junction in x and in y, as a fraction of the grid pitch."""
+    removed_roads_frac: float = 0.18
+    """Fraction of the grid's roads removed at random, as far as connectivity, degree >= 2 and loops allow."""
+    min_loops_count: int = 3
+    """The road graph keeps at least this many independent loops (all the grid's if it has fewer) ..."""
+    min_loops_frac: float = 0.5
+    """... or this fraction of the grid's independent loops (rounded down), whichever is more."""
+
+    # terrain
+    flat_half_width_m: float = 9.5
+    """The terrain equals the road surface this far from every road centre line and junction node."""
+    relief_blend_m: float = 16.0
+    """Beyond ``flat_half_width_m`` the terrain blends (smoothstep) into the natural relief over this."""
+    relief_peak_to_peak_m: float = 1.3
+    """Peak-to-peak height of the natural relief over the town (before the roads flatten it)."""
+    relief_waves_count: int = 7
+    """The natural relief is a sum of this many plane waves of random direction and phase."""
+    relief_wavelength_m: Range = (140.0, 520.0)
+    """Wavelength of each relief wave."""
+    relief_wave_weight_frac: Range = (0.5, 1.0)
+    """Relative amplitude of each relief wave (the sum is then scaled to ``relief_peak_to_peak_m``)."""
+    fine_max_size_m: float = 300.0
+    """Towns up to this size get ``terrain_cell_m`` and ``texture_px_m``; larger ones the coarse values."""
+    terrain_cell_m: float = 1.0
+    """Height-field cell of a town up to ``fine_max_size_m``."""
+    coarse_terrain_cell_m: float = 2.0
+    """Height-field cell of a larger town."""
+    texture_px_m: float = 0.5
+    """Ground-texture pixel of a town up to ``fine_max_size_m``."""
+    coarse_texture_px_m: float = 1.0
+    """Ground-texture pixel of a larger town."""
+
+    # frontages: buildings and walls
+    border_margin_m: float = 2.0
+    """Buildings, walls, poles and trees stay this far inside the town's border."""
+    building_min_offset_m: float = 9.5
+    """Nearest building or wall face from any road centre line."""
+    lot_start_m: Range = (0.0, 4.0)
+    """The first lot of a frontage starts this far beyond the junction disc."""
+    lot_width_m: Range = (10.0, 24.0)
+    """Width of a lot along the road (cut short before the next junction disc)."""
+    lot_min_width_m: float = 6.0
+    """Narrower lots stay empty, and no lot starts within this distance of the next junction disc."""
+    lot_gap_m: Range = (2.0, 8.0)
+    """Gap between neighbouring lots along the road."""
+    lot_kind_prob: tuple[float, float, float] = (0.72, 0.14, 0.14)
+    """Probabilities that a lot holds a building, a wall or nothing (summing to 1)."""
+    building_setback_m: Range = (0.5, 4.0)
+    """A building's front lies this far beyond ``building_min_offset_m``."""
+    building_depth_m: Range = (10.0, 22.0)
+    """Depth of a building's main box, away from the road."""
+    building_height_m: Range = (4.0, 30.0)
+    """Height of a building above its highest ground corner; also the least height of an L shape's wing."""
+    building_height_beta_shape: Range = (1.4, 3.0)
+    """Shapes (a, b) of the Beta distribution of heights within ``building_height_m`` (mostly low)."""
+    l_shape_prob: float = 0.35
+    """Probability that a building is an L shape: the main box and a wing behind one end of it."""
+    wing_width_frac: Range = (0.35, 0.6)
+    """Width of the wing along the road, as a fraction of the lot width."""
+    wing_depth_m: Range = (6.0, 14.0)
+    """Depth of the wing, away from the road."""
+    wing_height_frac: Range = (0.4, 1.0)
+    """Height of the wing, as a fraction of the main box's height."""
+    wing_overlap_m: float = 0.5
+    """The wing reaches this far into the main box."""
+    building_shrink_frac: tuple[float, ...] = (1.0, 0.75, 0.55)
+    """Scales of a building's footprint tried in turn until it fits (else the lot stays empty)."""
+    building_gap_m: float = 1.5
+    """Least distance between a building and anything placed before it."""
+    building_sink_m: float = 0.5
+    """A building reaches this far below its lowest ground corner."""
+    wall_thickness_m: float = 0.3
+    """Thickness of a wall."""
+    wall_setback_m: Range = (0.0, 1.0)
+    """A wall's road-side face lies this far beyond ``building_min_offset_m``."""
+    wall_height_m: Range = (1.2, 2.6)
+    """Height of a wall above its highest ground point."""
+    wall_gap_m: float = 0.5
+    """Least distance between a wall and anything placed before it."""
+    sink_m: float = 0.3
+    """Walls, poles and tree trunks reach this far below the ground."""
+
+    # street furniture: poles and trees
+    pole_offset_m: float = 6.6
+    """Poles stand this far from their road's centre line, alternating sides."""
+    pole_radius_m: float = 0.15
+    """Radius of a pole."""
+    pole_height_m: Range = (5.0, 8.0)
+    """Height of a pole above the ground."""
+    pole_start_m: Range = (4.0, 12.0)
+    """The first pole of a road stands this far beyond the junction disc (the last one at least the low end
+    before the next disc)."""
+    pole_spacing_m: Range = (25.0, 38.0)
+    """Distance between successive poles along a road."""
+    pole_road_slack_m: float = 0.5
+    """A pole may come this much closer to another road's centre line than ``pole_offset_m``."""
+    pole_gap_m: float = 0.5
+    """Least distance between a pole and anything placed before it."""
+    tree_offset_m: float = 7.8
+    """Street trees stand this far from their road's centre line ..."""
+    tree_offset_jitter_m: Range = (-0.2, 0.2)
+    """... plus this."""
+    street_tree_start_m: Range = (3.0, 13.0)
+    """The first street-tree spot of a road side lies this far beyond the junction disc (the last one at least
+    the low end before the next disc)."""
+    street_tree_spacing_m: Range = (9.0, 20.0)
+    """Distance between successive street-tree spots along a road side."""
+    street_tree_prob: float = 0.55
+    """Probability that a street-tree spot gets a tree."""
+    street_tree_road_slack_m: float = 0.6
+    """A street tree may come this much closer to another road's centre line than ``tree_offset_m``."""
+    street_tree_crown_radius_m: Range = (1.2, 1.9)
+    """Horizontal radius of a street tree's crown."""
+    block_tree_area_m2: float = 1200.0
+    """One block-tree candidate per this much town area, at a uniform random place."""
+    block_tree_border_m: float = 4.0
+    """Block-tree candidates lie this far inside the town's border."""
+    block_tree_room_m: Range = (1.5, 3.5)
+    """Half side of the square that must be free (``block_tree_room_gap_m`` apart) around a candidate."""
+    block_tree_room_gap_m: float = 0.5
+    """Least distance between that square and anything placed before it."""
+    block_tree_road_clearance_m: float = 10.5
+    """Least distance between a block tree's trunk and any road centre line."""
+    block_tree_crown_radius_m: Range = (1.2, 3.5)
+    """Horizontal radius of a block tree's crown."""
+    tree_trunk_radius_m: Range = (0.12, 0.25)
+    """Radius of a tree trunk."""
+    tree_trunk_height_m: Range = (2.8, 4.5)
+    """Height of the crown's centre above the ground, less ``tree_trunk_into_crown_frac`` of its semi-height
+    (unless ``tree_crown_min_bottom_m`` raises the crown)."""
+    tree_trunk_into_crown_frac: float = 0.3
+    """The trunk reaches this fraction of the crown's vertical semi-axis into the crown."""
+    tree_crown_height_frac: Range = (0.8, 1.3)
+    """Vertical semi-axis of the crown (an ellipsoid), as a fraction of its radius."""
+    tree_crown_min_bottom_m: float = 2.8
+    """The crown's bottom lies at least this high above the ground."""
+    tree_gap_m: float = 1.2
+    """Least distance between a trunk and anything placed before it."""
+
+    # parking
+    parking_offset_m: float = 4.7
+    """Parked cars' centres lie this far from the road's centre line (the parking strip beside each lane)."""
+    parking_pitch_m: float = 6.5
+    """Distance between parking spots along a road (the row is centred on the road)."""
+    parking_end_clearance_m: float = 6.0
+    """Parking spots keep this far beyond the junction discs."""
+    parking_spot_length_m: float = 5.2
+    """Length of a spot's footprint, which must be free (``parking_spot_gap_m`` apart) of poles, trees..."""
+    parking_spot_width_m: float = 2.0
+    """Width of a spot's footprint."""
+    parking_spot_gap_m: float = 0.3
+    """Least distance between a spot's footprint and anything placed before it."""
+    parking_spot_road_clearance_m: float = 0.5
+    """A spot's footprint keeps this far beyond the edge of any other road."""
+    parking_paint_beyond_m: float = 1.1
+    """The parking strip is painted this far beyond the parked cars' centre line."""
+    sidewalk_paint_inset_m: float = 1.0
+    """The sidewalk is painted up to this far before ``building_min_offset_m``."""
+    parked_car_prob: float = 0.4
+    """Probability that a spot holds a car, in each parked-car variant."""
+    parked_car_jitter_along_m: Range = (-0.4, 0.4)
+    """A parked car's offset from its spot along the road."""
+    parked_car_jitter_across_m: Range = (-0.1, 0.1)
+    """A parked car's offset from its spot across the road."""
+    parked_car_yaw_jitter_deg: Range = (-2.0, 2.0)
+    """A parked car's heading offset from the road's."""
+    parked_car_length_m: Range = (4.2, 4.8)
+    """Length of a parked car."""
+    parked_car_width_m: Range = (1.75, 1.9)
+    """Width of a parked car."""
+    parked_car_height_m: Range = (1.4, 1.6)
+    """Height of a parked car."""
+    parked_car_rgb_frac: Range = (0.05, 0.95)
+    """Each colour channel of a parked car's body (0 black .. 1 full)."""
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            object.__setattr__(self, f.name, _checked_style_value(f.name, f.type, value))
+        kinds = self.lot_kind_prob
+        if abs(sum(kinds) - 1.0) > 1e-9:
+            raise _style_error("lot_kind_prob", f"must sum to 1, got {kinds!r}")
+
+
+# Ranges that may reach below zero (offsets either way); every other range and number must be >= 0.
+_SIGNED_RANGES = frozenset(
+    {
+        "node_jitter_frac",
+        "tree_offset_jitter_m",
+        "parked_car_jitter_along_m",
+        "parked_car_jitter_across_m",
+        "parked_car_yaw_jitter_deg",
+    }
+)
+# Numbers (or ranges' low ends) that must be > 0: sizes of geoms, divisors, steps of the placement loops.
+_POSITIVE = frozenset(
+    {
+        "road_width_m",
+        "lane_width_m",
+        "road_thickness_m",
+        "max_grade_m_per_m",
+        "block_pitch_m",
+        "max_block_pitch_m",
+        "relief_blend_m",
+        "relief_peak_to_peak_m",
+        "relief_wavelength_m",
+        "terrain_cell_m",
+        "coarse_terrain_cell_m",
+        "texture_px_m",
+        "coarse_texture_px_m",
+        "lot_width_m",
+        "building_depth_m",
+        "building_height_m",
+        "building_height_beta_shape",
+        "wing_width_frac",
+        "wing_depth_m",
+        "wing_height_frac",
+        "building_shrink_frac",
+        "wall_thickness_m",
+        "wall_height_m",
+        "pole_radius_m",
+        "pole_height_m",
+        "pole_spacing_m",
+        "street_tree_spacing_m",
+        "block_tree_area_m2",
+        "block_tree_room_m",
+        "street_tree_crown_radius_m",
+        "block_tree_crown_radius_m",
+        "tree_trunk_radius_m",
+        "tree_trunk_height_m",
+        "tree_crown_height_frac",
+        "parking_pitch_m",
+        "parking_spot_length_m",
+        "parking_spot_width_m",
+        "parked_car_length_m",
+        "parked_car_width_m",
+        "parked_car_height_m",
+    }
+)
+
+
+def _style_error(name: str, problem: str) -> InputError:
+    return InputError(f"TownStyle.{name} {problem}")
+
+
+def _checked_style_value(name: str, kind: str, value: Any) -> Any:
+    """``value`` of TownStyle field ``name`` (annotation ``kind``) as float, int or tuple; or InputError."""
+
+    def number(v: Any) -> float:
+        if (
+            isinstance(v, bool)
+            or not isinstance(v, (int, float, np.integer, np.floating))
+            or not math.isfinite(v)
+        ):
+            raise _style_error(name, f"must be a finite number, got {value!r}")
+        return float(v)
+
+    if kind == "int":
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise _style_error(name, f"must be a positive integer, got {value!r}")
+        return int(value)
+    if kind == "float":
+        values = (number(value),)
+    else:  # Range, or a tuple of fractions
+        if not isinstance(value, (tuple, list)) or not value:
+            raise _style_error(name, f"must be a tuple of numbers, got {value!r}")
+        values = tuple(number(v) for v in value)
+        if kind == "Range" and len(values) != 2:
+            raise _style_error(name, f"must be a range (low, high), got {value!r}")
+        if kind == "tuple[float, float, float]" and len(values) != 3:
+            raise _style_error(name, f"must hold 3 numbers, got {value!r}")
+        if kind == "Range" and values[0] > values[1]:
+            raise _style_error(name, f"must be a range (low, high) with low <= high, got {value!r}")
+    if name.endswith(("_prob", "_shrink_frac")) and not all(0.0 <= v <= 1.0 for v in values):
+        raise _style_error(name, f"must lie in [0, 1], got {value!r}")
+    if name in _POSITIVE and min(values) <= 0.0:
+        raise _style_error(name, f"must be positive, got {value!r}")
+    if name not in _SIGNED_RANGES and min(values) < 0.0:
+        raise _style_error(name, f"must not be negative, got {value!r}")
+    return values[0] if kind == "float" else values
+
+
+DEFAULT_STYLE = TownStyle()
+"""The style of the shipped towns."""
+
+
+@dataclass(frozen=True)
+class TownPreset:
+    """A named town of ``scenes/``: the arguments that :func:`generate_town` writes it from."""
+
+    seed: int
+    """Seed of the generator (``np.random.default_rng(seed)``)."""
+    size_m: float
+    """Side of the square town."""
+    n_parked_variants: int = 2
+    """Number of parked-car sets ``parked_v{k}_{i}``."""
+    style: TownStyle = DEFAULT_STYLE
+    """Sizes, offsets, spacings and random ranges of the generator."""
+
+
+SHIPPED_TOWNS: dict[str, TownPreset] = {
+    "town_small": TownPreset(seed=1, size_m=200.0),
+    "town_medium": TownPreset(seed=3, size_m=300.0),
+    "town_large": TownPreset(seed=2, size_m=600.0),
+}
+"""Scenes shipped in ``scenes/``, by name. town_medium is the second town of the global-localization suites
+(issue 13: another seed and size than town_large's)."""
 
 _YAML_KEYS = (
     "name",
@@ -139,7 +480,8 @@ class TownInfo:
     Attributes:
         name, seed, size_m: the town's name, generator seed and side length (the town spans
             ``[-size_m/2, size_m/2]`` in x and y).
-        road_width_m, lane_width_m: 8.0 and 3.5 (two lanes, one each way, right-hand traffic).
+        road_width_m, lane_width_m: the style's, 8.0 and 3.5 by default (two lanes, one each way,
+            right-hand traffic).
         nodes: (K, 2) junction positions; edges: (E, 2) int node index pairs, each a straight two-way road.
         total_length_m: summed length of the edges (node to node).
         parked_variants: number of parked-car sets ``parked_v{k}_*`` in the XML.
@@ -332,21 +674,21 @@ def _connected(n: int, edges: list[tuple[int, int]]) -> bool:
     return len(seen) == n
 
 
-def _road_graph(rng: np.random.Generator, size_m: float) -> tuple[np.ndarray, np.ndarray]:
-    margin = 25.0
-    span = size_m - 2 * margin
-    n = max(2, round(span / 75.0) + 1)
-    spacing = min(span / (n - 1), 85.0)
+def _road_graph(rng: np.random.Generator, size_m: float, style: TownStyle) -> tuple[np.ndarray, np.ndarray]:
+    span = size_m - 2 * style.graph_margin_m
+    n = max(2, round(span / style.block_pitch_m) + 1)
+    spacing = min(span / (n - 1), style.max_block_pitch_m)
     grid = (np.arange(n) - (n - 1) / 2) * spacing
     gx, gy = np.meshgrid(grid, grid)  # node k = row * n + col, row along y
     nodes = np.stack([gx.ravel(), gy.ravel()], axis=1)
-    nodes = nodes + rng.uniform(-0.12, 0.12, size=nodes.shape) * spacing
+    nodes = nodes + rng.uniform(*style.node_jitter_frac, size=nodes.shape) * spacing
     nodes = np.round(nodes, 3)
     edges = [(r * n + c, r * n + c + 1) for r in range(n) for c in range(n - 1)]
     edges += [(r * n + c, (r + 1) * n + c) for r in range(n - 1) for c in range(n)]
     k = len(nodes)
-    min_loops = min(len(edges) - k + 1, max(3, (len(edges) - k + 1) // 2))
-    n_remove = int(round(0.18 * len(edges)))
+    loops = len(edges) - k + 1
+    min_loops = min(loops, max(style.min_loops_count, math.floor(loops * style.min_loops_frac)))
+    n_remove = int(round(style.removed_roads_frac * len(edges)))
     removed = 0
     candidates = list(edges)
     for idx in rng.permutation(len(edges)).tolist():
@@ -361,11 +703,11 @@ def _road_graph(rng: np.random.Generator, size_m: float) -> tuple[np.ndarray, np
     return nodes, np.array(sorted(edges), dtype=np.int64)
 
 
-def _node_heights(nodes, edges, natural) -> np.ndarray:
-    """Node heights: the natural relief, relaxed until every road's grade is at most MAX_GRADE."""
+def _node_heights(nodes, edges, natural, max_grade: float, ramp_start_m: float) -> np.ndarray:
+    """Node heights: the natural relief, relaxed until every road's grade is at most ``max_grade``."""
     h = natural(nodes[:, 0], nodes[:, 1]).astype(np.float64)
     length = np.linalg.norm(nodes[edges[:, 1]] - nodes[edges[:, 0]], axis=1)
-    allowed = 0.98 * MAX_GRADE * (length - 2 * RAMP_START_M)
+    allowed = 0.98 * max_grade * (length - 2 * ramp_start_m)  # 2 % to spare
     for _ in range(10000):
         dh = h[edges[:, 1]] - h[edges[:, 0]]
         excess = np.abs(dh) - allowed
@@ -380,13 +722,13 @@ def _node_heights(nodes, edges, natural) -> np.ndarray:
 # -------------------------------------------------------------------------------------------------- terrain
 
 
-def _natural_relief(rng: np.random.Generator):
+def _natural_relief(rng: np.random.Generator, style: TownStyle):
     """A smooth random relief: a sum of long-wavelength plane waves; returns f(x, y) -> z."""
-    k = 7
-    wavelength = rng.uniform(140.0, 520.0, k)
+    k = style.relief_waves_count
+    wavelength = rng.uniform(*style.relief_wavelength_m, k)
     theta = rng.uniform(0, 2 * np.pi, k)
     phase = rng.uniform(0, 2 * np.pi, k)
-    amp = rng.uniform(0.5, 1.0, k)
+    amp = rng.uniform(*style.relief_wave_weight_frac, k)
     kx = 2 * np.pi / wavelength * np.cos(theta)
     ky = 2 * np.pi / wavelength * np.sin(theta)
 
@@ -398,13 +740,14 @@ def _natural_relief(rng: np.random.Generator):
     return f
 
 
-def _road_profile(s, length, ha, hb):
+def _road_profile(s, length, ha, hb, ramp_start_m: float):
     """Road surface height at arc length s along an edge: flat near the nodes, one grade between."""
-    t = np.clip((s - RAMP_START_M) / (length - 2 * RAMP_START_M), 0.0, 1.0)
+    t = np.clip((s - ramp_start_m) / (length - 2 * ramp_start_m), 0.0, 1.0)
     return ha + (hb - ha) * t
 
 
-def _terrain_grid(xs, ys, nodes, edges, hnode, natural, relief_scale) -> np.ndarray:
+def _terrain_grid(xs, ys, nodes, edges, hnode, natural, relief_scale, style: TownStyle) -> np.ndarray:
+    flat = style.flat_half_width_m
     a = nodes[edges[:, 0]]
     b = nodes[edges[:, 1]]
     length = np.linalg.norm(b - a, axis=1)
@@ -422,21 +765,21 @@ def _terrain_grid(xs, ys, nodes, edges, hnode, natural, relief_scale) -> np.ndar
             lat,
             np.minimum(np.linalg.norm(rel, axis=-1), np.linalg.norm(p[:, None, :] - b[None], axis=-1)),
         )
-        prof = _road_profile(s, length[None], ha[None], hb[None])
-        cand = np.where(in_span & (lat <= FLAT_HALF_WIDTH_M), prof, -np.inf).max(axis=1)
+        prof = _road_profile(s, length[None], ha[None], hb[None], style.ramp_start_m)
+        cand = np.where(in_span & (lat <= flat), prof, -np.inf).max(axis=1)
         dnode = np.linalg.norm(p[:, None, :] - nodes[None], axis=-1)
-        cand = np.maximum(cand, np.where(dnode <= FLAT_HALF_WIDTH_M, hnode[None], -np.inf).max(axis=1))
+        cand = np.maximum(cand, np.where(dnode <= flat, hnode[None], -np.inf).max(axis=1))
         nearest = dseg.argmin(axis=1)
         dist = dseg[np.arange(len(p)), nearest]
         road = np.where(np.isfinite(cand), cand, prof[np.arange(len(p)), nearest])
-        t = np.clip((dist - FLAT_HALF_WIDTH_M) / BLEND_M, 0.0, 1.0)
+        t = np.clip((dist - flat) / style.relief_blend_m, 0.0, 1.0)
         w = t * t * (3 - 2 * t)
         nat = natural(p[:, 0], p[:, 1]) * relief_scale
         out[r] = road + w * (nat - road)
     return out
 
 
-def _paint_ground(size_m: float, px_m: float, nodes, edges, natural) -> np.ndarray:
+def _paint_ground(size_m: float, px_m: float, nodes, edges, natural, style: TownStyle) -> np.ndarray:
     """The terrain's texture (H, W, 3) uint8: asphalt, parking strips, sidewalks and grass.
 
     Row 0 is the town's +y edge, column 0 its -x edge (how MuJoCo maps a 2D texture onto a height field
@@ -447,41 +790,30 @@ def _paint_ground(size_m: float, px_m: float, nodes, edges, natural) -> np.ndarr
     a = nodes[edges[:, 0]]
     b = nodes[edges[:, 1]]
     img = np.empty((n, n, 3), dtype=np.uint8)
-    asphalt = np.array([56, 56, 61])
-    parking = np.array([74, 74, 79])
-    sidewalk = np.array([152, 150, 144])
-    grass = np.array([92, 124, 70])
+    asphalt = np.array(_ASPHALT_RGB)
+    parking = np.array(_PARKING_RGB)
+    sidewalk = np.array(_SIDEWALK_RGB)
+    grass = np.array(_GRASS_RGB)
+    sidewalk_m = style.building_min_offset_m - style.sidewalk_paint_inset_m
+    parking_m = style.parking_offset_m + style.parking_paint_beyond_m
     for i in range(n):
         y = centres[n - 1 - i]
         p = np.stack([centres, np.full(n, y)], axis=1)
         d = _point_segment_distance(p[:, None, :], a[None], b[None]).min(axis=1)
         dn = np.linalg.norm(p[:, None, :] - nodes[None], axis=-1).min(axis=1)
-        shade = 1.0 + 0.12 * natural(p[:, 0], p[:, 1]) / RELIEF_M
+        shade = 1.0 + _GRASS_SHADE_FRAC * natural(p[:, 0], p[:, 1]) / style.relief_peak_to_peak_m
         row = np.clip(grass[None] * shade[:, None], 0, 255)
-        row = np.where((d <= BUILDING_MIN_OFFSET_M - 1.0)[:, None], sidewalk[None], row)
-        row = np.where((d <= PARK_OFFSET_M + 1.1)[:, None], parking[None], row)
-        row = np.where(((d <= ROAD_WIDTH_M / 2) | (dn <= JUNCTION_RADIUS_M))[:, None], asphalt[None], row)
+        row = np.where((d <= sidewalk_m)[:, None], sidewalk[None], row)
+        row = np.where((d <= parking_m)[:, None], parking[None], row)
+        road = (d <= style.road_width_m / 2) | (dn <= style.junction_radius_m)
+        row = np.where(road[:, None], asphalt[None], row)
         img[i] = np.round(row).astype(np.uint8)
     return img
 
 
 def _write_png(path: Path, img: np.ndarray) -> None:
-    """A plain RGB8 PNG (deterministic bytes, no imaging library needed)."""
-    h, w, _ = img.shape
-    raw = b"".join(b"\x00" + img[r].tobytes() for r in range(h))
-
-    def chunk(tag: bytes, data: bytes) -> bytes:
-        return (
-            struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
-        )
-
-    ihdr = struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)
-    path.write_bytes(
-        b"\x89PNG\r\n\x1a\n"
-        + chunk(b"IHDR", ihdr)
-        + chunk(b"IDAT", zlib.compress(raw, 9))
-        + chunk(b"IEND", b"")
-    )
+    """``img`` (H, W, 3) uint8 as an RGB8 PNG (no metadata chunks: the same pixels write the same bytes)."""
+    Image.fromarray(np.ascontiguousarray(img, dtype=np.uint8)).save(path, format="PNG", compress_level=9)
 
 
 # ------------------------------------------------------------------------------------------------- objects
@@ -531,8 +863,9 @@ class _ParkedCar:
 class _Planner:
     """Places buildings, walls, poles, trees and parked cars beside the roads without overlaps."""
 
-    def __init__(self, rng, size_m, nodes, edges, ground):
+    def __init__(self, rng, size_m, nodes, edges, ground, style: TownStyle):
         self.rng = rng
+        self.style = style
         self.size_m = size_m
         self.nodes = nodes
         self.edges = edges
@@ -572,47 +905,55 @@ class _Planner:
 
     # -- buildings and walls along the frontages
     def frontages(self) -> None:
-        rng = self.rng
+        rng, st = self.rng, self.style
+        jr = st.junction_radius_m
         for e in range(len(self.edges)):
             a, u, n, length, yaw = self._frame(e)
             for side in (1.0, -1.0):
-                s = JUNCTION_RADIUS_M + rng.uniform(0.0, 4.0)
-                while s < length - JUNCTION_RADIUS_M - 6.0:
-                    width = rng.uniform(10.0, 24.0)
-                    width = min(width, length - JUNCTION_RADIUS_M - s)
-                    kind = rng.choice(["building", "wall", "gap"], p=[0.72, 0.14, 0.14])
-                    if width >= 6.0 and kind == "building":
+                s = jr + rng.uniform(*st.lot_start_m)
+                while s < length - jr - st.lot_min_width_m:
+                    width = rng.uniform(*st.lot_width_m)
+                    width = min(width, length - jr - s)
+                    kind = rng.choice(["building", "wall", "gap"], p=list(st.lot_kind_prob))
+                    if width >= st.lot_min_width_m and kind == "building":
                         self._building(a, u, n, yaw, side, s, width)
-                    elif width >= 6.0 and kind == "wall":
+                    elif width >= st.lot_min_width_m and kind == "wall":
                         self._wall(a, u, n, yaw, side, s, width)
-                    s += width + rng.uniform(2.0, 8.0)
+                    s += width + rng.uniform(*st.lot_gap_m)
 
     def _building(self, a, u, n, yaw, side, s, width) -> None:
-        rng = self.rng
-        setback = rng.uniform(BUILDING_MIN_OFFSET_M + 0.5, BUILDING_MIN_OFFSET_M + 4.0)
-        depth = rng.uniform(10.0, 22.0)
-        height = 4.0 + 26.0 * rng.beta(1.4, 3.0)
-        l_shape = rng.random() < 0.35
-        wing_w = rng.uniform(0.35, 0.6) * width
-        wing_d = rng.uniform(6.0, 14.0)
+        rng, st = self.rng, self.style
+        setback = rng.uniform(
+            st.building_min_offset_m + st.building_setback_m[0],
+            st.building_min_offset_m + st.building_setback_m[1],
+        )
+        depth = rng.uniform(*st.building_depth_m)
+        h_lo, h_hi = st.building_height_m
+        height = h_lo + (h_hi - h_lo) * rng.beta(*st.building_height_beta_shape)
+        l_shape = rng.random() < st.l_shape_prob
+        wing_w = rng.uniform(*st.wing_width_frac) * width
+        wing_d = rng.uniform(*st.wing_depth_m)
         wing_end = rng.choice([-1.0, 1.0])
-        wing_h = max(4.0, height * rng.uniform(0.4, 1.0))
-        for shrink in (1.0, 0.75, 0.55):
+        wing_h = max(h_lo, height * rng.uniform(*st.wing_height_frac))
+        for shrink in st.building_shrink_frac:
             w, d = width * shrink, depth * shrink
             center = a + u * (s + w / 2) + side * n * (setback + d / 2)
             rects = [(center, (w / 2, d / 2), height)]
             if l_shape:
                 ww, wd = wing_w * shrink, wing_d * shrink
-                wc = a + u * (s + w / 2 + wing_end * (w - ww) / 2) + side * n * (setback + d + wd / 2 - 0.5)
+                wing_lateral = setback + d + wd / 2 - st.wing_overlap_m
+                wc = a + u * (s + w / 2 + wing_end * (w - ww) / 2) + side * n * wing_lateral
                 rects.append((wc, (ww / 2, wd / 2), wing_h))
-            if all(self._placeable(c, yaw, h, BUILDING_MIN_OFFSET_M, 1.5) for c, h, _ in rects):
+            if all(
+                self._placeable(c, yaw, h, st.building_min_offset_m, st.building_gap_m) for c, h, _ in rects
+            ):
                 b = self.n_buildings
                 self.n_buildings += 1
-                mat = f"building{rng.integers(0, 5)}"
+                mat = f"building{rng.integers(0, _N_BUILDING_MATERIALS)}"
                 for (c, half, tall), tag in zip(rects, "ab", strict=False):
                     self.occ.add(c, yaw, half)
                     zb, zt = self._base_top(c, yaw, half)
-                    z0 = zb - 0.5  # sunk into the ground on its lowest corner
+                    z0 = zb - st.building_sink_m  # sunk into the ground on its lowest corner
                     z1 = zt + tall
                     self.boxes.append(
                         _Box(
@@ -627,22 +968,22 @@ class _Planner:
 
     def _placeable(self, center, yaw, half, road_clearance: float, gap: float, skip=None) -> bool:
         return (
-            self._inside(center, yaw, half, 2.0)
+            self._inside(center, yaw, half, self.style.border_margin_m)
             and self._road_distance(center, yaw, half, skip) >= road_clearance
             and self.occ.free(center, yaw, half, gap)
         )
 
     def _wall(self, a, u, n, yaw, side, s, width) -> None:
-        rng = self.rng
-        thick = 0.3
-        lateral = BUILDING_MIN_OFFSET_M + thick / 2 + rng.uniform(0.0, 1.0)
-        height = rng.uniform(1.2, 2.6)
+        rng, st = self.rng, self.style
+        thick = st.wall_thickness_m
+        lateral = st.building_min_offset_m + thick / 2 + rng.uniform(*st.wall_setback_m)
+        height = rng.uniform(*st.wall_height_m)
         center = a + u * (s + width / 2) + side * n * lateral
         half = (width / 2, thick / 2)
-        if self._placeable(center, yaw, half, BUILDING_MIN_OFFSET_M, 0.5):
+        if self._placeable(center, yaw, half, st.building_min_offset_m, st.wall_gap_m):
             self.occ.add(center, yaw, half)
             zb, zt = self._base_top(center, yaw, half)
-            z0, z1 = zb - 0.3, zt + height
+            z0, z1 = zb - st.sink_m, zt + height
             self.boxes.append(
                 _Box(
                     f"wall_{self.n_walls}",
@@ -656,107 +997,122 @@ class _Planner:
 
     # -- street furniture
     def poles_and_street_trees(self) -> None:
-        rng = self.rng
+        rng, st = self.rng, self.style
+        jr = st.junction_radius_m
+        # a start range (lo, hi) is drawn as lo + U(0, hi - lo), the arithmetic that wrote the shipped towns
+        pole_lo, pole_hi = st.pole_start_m
+        tree_lo, tree_hi = st.street_tree_start_m
         for e in range(len(self.edges)):
             a, u, n, length, yaw = self._frame(e)
-            s = JUNCTION_RADIUS_M + 4.0 + rng.uniform(0.0, 8.0)
+            s = jr + pole_lo + rng.uniform(0.0, pole_hi - pole_lo)
             side = rng.choice([-1.0, 1.0])
-            while s < length - JUNCTION_RADIUS_M - 4.0:
-                xy = a + u * s + side * n * POLE_OFFSET_M
-                r = 0.15
-                if self._placeable(xy, yaw, (r, r), POLE_OFFSET_M - 0.5, 0.5, skip=None):
+            while s < length - jr - pole_lo:
+                xy = a + u * s + side * n * st.pole_offset_m
+                r = st.pole_radius_m
+                clearance = st.pole_offset_m - st.pole_road_slack_m
+                if self._placeable(xy, yaw, (r, r), clearance, st.pole_gap_m, skip=None):
                     self.occ.add(xy, yaw, (r, r))
                     self.poles.append(
                         _Pole(
                             f"pole_{len(self.poles)}",
                             (xy[0], xy[1]),
-                            float(self.ground(xy[0], xy[1])) - 0.3,
+                            float(self.ground(xy[0], xy[1])) - st.sink_m,
                             r,
-                            rng.uniform(5.0, 8.0) + 0.3,
+                            rng.uniform(*st.pole_height_m) + st.sink_m,
                         )
                     )
-                s += rng.uniform(25.0, 38.0)
+                s += rng.uniform(*st.pole_spacing_m)
                 side = -side
             for side in (1.0, -1.0):
-                s = JUNCTION_RADIUS_M + 3.0 + rng.uniform(0.0, 10.0)
-                while s < length - JUNCTION_RADIUS_M - 3.0:
-                    if rng.random() < 0.55:
-                        xy = a + u * s + side * n * (TREE_OFFSET_M + rng.uniform(-0.2, 0.2))
-                        self._tree(xy, crown_max=1.9, road_clearance=TREE_OFFSET_M - 0.6)
-                    s += rng.uniform(9.0, 20.0)
+                s = jr + tree_lo + rng.uniform(0.0, tree_hi - tree_lo)
+                while s < length - jr - tree_lo:
+                    if rng.random() < st.street_tree_prob:
+                        xy = a + u * s + side * n * (st.tree_offset_m + rng.uniform(*st.tree_offset_jitter_m))
+                        clearance = st.tree_offset_m - st.street_tree_road_slack_m
+                        self._tree(xy, st.street_tree_crown_radius_m, road_clearance=clearance)
+                    s += rng.uniform(*st.street_tree_spacing_m)
 
-    def _tree(self, xy, crown_max: float, road_clearance: float) -> None:
-        rng = self.rng
-        trunk_r = rng.uniform(0.12, 0.25)
-        if not self._placeable(xy, 0.0, (trunk_r, trunk_r), road_clearance, 1.2):
+    def _tree(self, xy, crown_radius_m: Range, road_clearance: float) -> None:
+        rng, st = self.rng, self.style
+        trunk_r = rng.uniform(*st.tree_trunk_radius_m)
+        if not self._placeable(xy, 0.0, (trunk_r, trunk_r), road_clearance, st.tree_gap_m):
             return
-        crown_r = rng.uniform(1.2, crown_max)
-        crown_h = crown_r * rng.uniform(0.8, 1.3)
-        trunk_h = rng.uniform(2.8, 4.5)
-        crown_z = max(trunk_h + 0.3 * crown_h, 2.8 + crown_h)
+        crown_r = rng.uniform(*crown_radius_m)
+        crown_h = crown_r * rng.uniform(*st.tree_crown_height_frac)
+        trunk_h = rng.uniform(*st.tree_trunk_height_m)
+        into = st.tree_trunk_into_crown_frac
+        crown_z = max(trunk_h + into * crown_h, st.tree_crown_min_bottom_m + crown_h)
         self.occ.add(xy, 0.0, (trunk_r, trunk_r))
         self.trees.append(
             _Tree(
                 f"tree_{len(self.trees)}",
                 (xy[0], xy[1]),
-                float(self.ground(xy[0], xy[1])) - 0.3,
+                float(self.ground(xy[0], xy[1])) - st.sink_m,
                 trunk_r,
-                trunk_h + 0.3 + 0.3 * crown_h,
+                trunk_h + st.sink_m + into * crown_h,
                 (crown_r, crown_r, crown_h),
-                crown_z + 0.3,
+                crown_z + st.sink_m,
             )
         )
 
     def block_trees(self) -> None:
-        rng = self.rng
-        n = int(self.size_m**2 / 1200.0)
-        half = self.size_m / 2 - 4.0
+        rng, st = self.rng, self.style
+        n = int(self.size_m**2 / st.block_tree_area_m2)
+        half = self.size_m / 2 - st.block_tree_border_m
         for _ in range(n):
             xy = rng.uniform(-half, half, 2)
-            crown = rng.uniform(1.5, 3.5)
-            if self.occ.free(xy, 0.0, (crown, crown), 0.5):
-                self._tree(xy, crown_max=3.5, road_clearance=FLAT_HALF_WIDTH_M + 1.0)
+            room = rng.uniform(*st.block_tree_room_m)
+            if self.occ.free(xy, 0.0, (room, room), st.block_tree_room_gap_m):
+                self._tree(xy, st.block_tree_crown_radius_m, road_clearance=st.block_tree_road_clearance_m)
 
     # -- parked cars
     def parking_spots(self) -> list[tuple[np.ndarray, float, int]]:
         """Spots (centre xy, yaw facing the traffic of that side, edge index) in the parking strips."""
+        st = self.style
+        pitch = st.parking_pitch_m
+        half = (st.parking_spot_length_m / 2, st.parking_spot_width_m / 2)
         spots = []
         for e in range(len(self.edges)):
             a, u, n, length, yaw = self._frame(e)
-            count = int((length - 2 * (JUNCTION_RADIUS_M + 6.0)) // PARK_PITCH_M)
+            count = int((length - 2 * (st.junction_radius_m + st.parking_end_clearance_m)) // pitch)
             if count <= 0:
                 continue
-            s0 = (length - (count - 1) * PARK_PITCH_M) / 2
+            s0 = (length - (count - 1) * pitch) / 2
             for side in (1.0, -1.0):
                 heading = yaw if side < 0 else yaw + math.pi  # right-hand traffic
                 heading = float(wrap_angle(heading))
                 for i in range(count):
-                    xy = a + u * (s0 + i * PARK_PITCH_M) + side * n * PARK_OFFSET_M
-                    if self._road_distance(xy, heading, (2.6, 1.0), skip=e) < ROAD_WIDTH_M / 2 + 0.5:
+                    xy = a + u * (s0 + i * pitch) + side * n * st.parking_offset_m
+                    clearance = st.road_width_m / 2 + st.parking_spot_road_clearance_m
+                    if self._road_distance(xy, heading, half, skip=e) < clearance:
                         continue  # would stand on another road
-                    if not self.occ.free(xy, heading, (2.6, 1.0), 0.3):
+                    if not self.occ.free(xy, heading, half, st.parking_spot_gap_m):
                         continue  # a pole, tree or wall in the way
                     spots.append((xy, heading, e))
         return spots
 
     def parked_variant(self, k: int, spots) -> list[_ParkedCar]:
-        rng = self.rng
+        rng, st = self.rng, self.style
         cars = []
-        take = rng.random(len(spots)) < 0.4
+        take = rng.random(len(spots)) < st.parked_car_prob
         for idx in np.flatnonzero(take):
             xy, heading, e = spots[idx]
             _, u, n, _, _ = self._frame(e)
-            xy = xy + u * rng.uniform(-0.4, 0.4) + n * rng.uniform(-0.1, 0.1)
-            yaw = heading + math.radians(rng.uniform(-2.0, 2.0))
-            rgb = tuple(float(c) for c in np.round(rng.uniform(0.05, 0.95, 3), 3))
+            xy = (
+                xy
+                + u * rng.uniform(*st.parked_car_jitter_along_m)
+                + n * rng.uniform(*st.parked_car_jitter_across_m)
+            )
+            yaw = heading + math.radians(rng.uniform(*st.parked_car_yaw_jitter_deg))
+            rgb = tuple(float(c) for c in np.round(rng.uniform(*st.parked_car_rgb_frac, 3), 3))
             cars.append(
                 _ParkedCar(
                     f"parked_v{k}_{len(cars)}",
                     (float(xy[0]), float(xy[1]), float(self.ground(xy[0], xy[1]))),
                     yaw,
-                    rng.uniform(4.2, 4.8),
-                    rng.uniform(1.75, 1.9),
-                    rng.uniform(1.4, 1.6),
+                    rng.uniform(*st.parked_car_length_m),
+                    rng.uniform(*st.parked_car_width_m),
+                    rng.uniform(*st.parked_car_height_m),
                     rgb,
                 )
             )
@@ -780,13 +1136,35 @@ def _quat(yaw: float, pitch: float = 0.0) -> str:
     return _v(*_quat_wxyz(yaw, pitch), nd=6)
 
 
+def _style_note(style: TownStyle) -> str:
+    """``, style=TownStyle(field=value, ...)`` with the fields that differ from the default; "" if none."""
+    changed = [
+        f"{f.name}={getattr(style, f.name)!r}"
+        for f in fields(style)
+        if getattr(style, f.name) != getattr(DEFAULT_STYLE, f.name)
+    ]
+    return f", style=TownStyle({', '.join(changed)})" if changed else ""
+
+
 def _write_xml(
-    path: Path, name, seed, size_m, terrain: Terrain, texture: str, road_boxes, junctions, plan, variants
+    path: Path,
+    name,
+    seed,
+    size_m,
+    style: TownStyle,
+    terrain: Terrain,
+    texture: str,
+    road_boxes,
+    junctions,
+    plan,
+    variants,
 ) -> None:
     half = size_m / 2
+    thick = style.road_thickness_m
+    call = f"seed={seed}, size_m={size_m}{_style_note(style)}"
     ex = [
         f'<mujoco model="{name}">',
-        f"  <!-- generated by simbed.towngen.generate_town(seed={seed}, size_m={size_m}); do not edit -->",
+        f"  <!-- generated by simbed.towngen.generate_town({call}); do not edit -->",
         '  <option timestep="0.002"/>',
         f'  <statistic center="0 0 1" extent="{_f(half)}"/>',
         "  <visual>",
@@ -829,8 +1207,8 @@ def _write_xml(
         )
     for nm, xy, z in junctions:
         ex.append(
-            f'    <geom name="{nm}" type="cylinder" pos="{_v(xy[0], xy[1], z - ROAD_THICKNESS_M / 2)}"'
-            f' size="{_v(JUNCTION_RADIUS_M, ROAD_THICKNESS_M / 2)}" material="junction"/>'
+            f'    <geom name="{nm}" type="cylinder" pos="{_v(xy[0], xy[1], z - thick / 2)}"'
+            f' size="{_v(style.junction_radius_m, thick / 2)}" material="junction"/>'
         )
     for bx in plan.boxes:
         ex.append(
@@ -927,16 +1305,20 @@ def generate_town(
     *,
     n_parked_variants: int = 2,
     name: str | None = None,
+    style: TownStyle = DEFAULT_STYLE,
 ) -> TownInfo:
     """Generate a town: write ``out_xml``, ``<stem>_terrain.bin``, ``<stem>_ground.img`` and ``<stem>.yaml``.
 
     Args:
         seed: the generator seed (``np.random.default_rng(seed)``); the same seed writes the same bytes.
         size_m: side of the square town in metres (at least 120); roads, buildings and terrain lie inside
-            ``[-size_m/2, size_m/2]``². The height field has 1 m cells up to 300 m, 2 m cells beyond.
+            ``[-size_m/2, size_m/2]``². The height field has ``style.terrain_cell_m`` cells (1 m) up to
+            ``style.fine_max_size_m`` (300 m), ``style.coarse_terrain_cell_m`` cells (2 m) beyond.
         out_xml: the MJCF file to write; ``car.xml`` is copied next to it unless already there.
         n_parked_variants: number of parked-car sets ``parked_v{k}_{i}`` (k = 0 .. n-1).
         name: the town's name (default: ``out_xml``'s stem).
+        style: the generator's sizes, offsets, spacings and random ranges (:class:`TownStyle`); the XML's
+            header comment names the fields that differ from the default.
 
     Returns:
         The :class:`TownInfo` that the sidecar holds.
@@ -947,6 +1329,8 @@ def generate_town(
         raise InputError(f"town size_m must be a number in [120, 5000], got {size_m!r}")
     if isinstance(n_parked_variants, bool) or not isinstance(n_parked_variants, int) or n_parked_variants < 0:
         raise InputError(f"n_parked_variants must be a non-negative integer, got {n_parked_variants!r}")
+    if not isinstance(style, TownStyle):
+        raise InputError(f"town style must be a TownStyle, got {type(style).__name__}")
     seed = int(seed)
     size_m = float(size_m)
     out_xml = Path(out_xml)
@@ -964,19 +1348,20 @@ def generate_town(
     rng = np.random.default_rng(seed)
 
     # roads and terrain
-    nodes, edges = _road_graph(rng, size_m)
-    relief = _natural_relief(rng)
-    cell = 1.0 if size_m <= 300.0 else 2.0
+    nodes, edges = _road_graph(rng, size_m, style)
+    relief = _natural_relief(rng, style)
+    fine = size_m <= style.fine_max_size_m
+    cell = style.terrain_cell_m if fine else style.coarse_terrain_cell_m
     n = round(size_m / cell) + 1
     xs = np.linspace(-size_m / 2, size_m / 2, n)
     probe = relief(*np.meshgrid(xs[::4], xs[::4]))
-    relief_scale = RELIEF_M / float(probe.max() - probe.min())
+    relief_scale = style.relief_peak_to_peak_m / float(probe.max() - probe.min())
 
     def natural(x, y):
         return relief(x, y) * relief_scale
 
-    hnode = _node_heights(nodes, edges, natural)
-    grid = _terrain_grid(xs, xs, nodes, edges, hnode, relief, relief_scale)
+    hnode = _node_heights(nodes, edges, natural, style.max_grade_m_per_m, style.ramp_start_m)
+    grid = _terrain_grid(xs, xs, nodes, edges, hnode, relief, relief_scale, style)
     gmin, gmax = float(grid.min()), float(grid.max())
     data = ((grid - gmin) / (gmax - gmin)).astype(np.float32)
     data = np.clip(data, 0.0, 1.0)
@@ -997,19 +1382,19 @@ def generate_town(
     lengths = np.linalg.norm(b - a, axis=1)
     for e, (i, j) in enumerate(edges):
         u = (b[e] - a[e]) / lengths[e]
-        run = lengths[e] - 2 * RAMP_START_M
+        run = lengths[e] - 2 * style.ramp_start_m
         dh = float(hnode[j] - hnode[i])
         pitch = -math.atan2(dh, run)  # positive pitch about y tips the nose down
         mid = (a[e] + b[e]) / 2
         top = (hnode[i] + hnode[j]) / 2
         # box centre = top-surface centre minus half the thickness along the tilted normal
         nrm = np.array([-math.sin(-pitch) * u[0], -math.sin(-pitch) * u[1], math.cos(pitch)])
-        c = np.array([mid[0], mid[1], top]) - nrm * ROAD_THICKNESS_M / 2
+        c = np.array([mid[0], mid[1], top]) - nrm * style.road_thickness_m / 2
         road_boxes.append(
             _Box(
                 f"road_{e}",
                 (float(c[0]), float(c[1]), float(c[2])),
-                (math.hypot(run, dh) / 2, ROAD_WIDTH_M / 2, ROAD_THICKNESS_M / 2),
+                (math.hypot(run, dh) / 2, style.road_width_m / 2, style.road_thickness_m / 2),
                 math.atan2(u[1], u[0]),
                 "road",
                 pitch,
@@ -1020,10 +1405,10 @@ def generate_town(
     ground = terrain.height
     e0 = int(rng.integers(len(edges)))
     u0 = (b[e0] - a[e0]) / lengths[e0]
-    p0 = a[e0] + u0 * lengths[e0] / 2 - np.array([-u0[1], u0[0]]) * LANE_WIDTH_M / 2
+    p0 = a[e0] + u0 * lengths[e0] / 2 - np.array([-u0[1], u0[0]]) * style.lane_width_m / 2
     spawn = (round(float(p0[0]), 4), round(float(p0[1]), 4), round(math.atan2(u0[1], u0[0]), 6))
 
-    plan = _Planner(rng, size_m, nodes, edges, ground)
+    plan = _Planner(rng, size_m, nodes, edges, ground, style)
     plan.frontages()
     plan.poles_and_street_trees()
     plan.block_trees()
@@ -1034,8 +1419,8 @@ def generate_town(
         name=name,
         seed=seed,
         size_m=size_m,
-        road_width_m=ROAD_WIDTH_M,
-        lane_width_m=LANE_WIDTH_M,
+        road_width_m=style.road_width_m,
+        lane_width_m=style.lane_width_m,
         nodes=nodes,
         edges=edges,
         total_length_m=round(float(lengths.sum()), 3),
@@ -1047,10 +1432,9 @@ def generate_town(
     out_xml.parent.mkdir(parents=True, exist_ok=True)
     _write_terrain(out_xml.parent / terrain.file, data)
     texture = f"{out_xml.stem}_ground.img"  # a PNG; not named *.png, which the repository's .gitignore drops
-    _write_png(
-        out_xml.parent / texture, _paint_ground(size_m, 0.5 if size_m <= 300 else 1.0, nodes, edges, natural)
-    )
-    _write_xml(out_xml, name, seed, size_m, terrain, texture, road_boxes, junctions, plan, variants)
+    px_m = style.texture_px_m if fine else style.coarse_texture_px_m
+    _write_png(out_xml.parent / texture, _paint_ground(size_m, px_m, nodes, edges, natural, style))
+    _write_xml(out_xml, name, seed, size_m, style, terrain, texture, road_boxes, junctions, plan, variants)
     _write_yaml(out_xml.with_suffix(".yaml"), info)
     car_copy = out_xml.parent / "car.xml"
     if car_copy.resolve() != CAR_XML.resolve():
@@ -1193,10 +1577,22 @@ def use_parked_variant(model, k: int | None) -> None:
             model.geom_rgba[g, 3] = 0.0
 
 
+def generate_preset(preset: TownPreset, out_xml: Path | str, *, name: str | None = None) -> TownInfo:
+    """Write the town of ``preset`` (seed, size, parked-car variants and style) to ``out_xml``."""
+    return generate_town(
+        preset.seed,
+        preset.size_m,
+        Path(out_xml),
+        n_parked_variants=preset.n_parked_variants,
+        name=name,
+        style=preset.style,
+    )
+
+
 def generate_shipped(scenes_dir: Path | str | None = None) -> dict[str, TownInfo]:
     """(Re)generate the towns shipped in ``scenes/`` (:data:`SHIPPED_TOWNS`)."""
     folder = CAR_XML.parent if scenes_dir is None else Path(scenes_dir)
-    return {nm: generate_town(seed, size, folder / f"{nm}.xml") for nm, (seed, size) in SHIPPED_TOWNS.items()}
+    return {nm: generate_preset(preset, folder / f"{nm}.xml") for nm, preset in SHIPPED_TOWNS.items()}
 
 
 if __name__ == "__main__":

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import ast
+import dataclasses
+import inspect
+import itertools
 import math
 import re
 import shutil
@@ -11,11 +15,17 @@ import mujoco
 import numpy as np
 import pytest
 import yaml
+from PIL import Image
 
 from rangemcl.errors import InputError
+from simbed import towngen
 from simbed.towngen import (
+    DEFAULT_STYLE,
     SHIPPED_TOWNS,
     TownInfo,
+    TownPreset,
+    TownStyle,
+    generate_preset,
     generate_town,
     load_town_info,
     parked_variant_bodies,
@@ -365,10 +375,139 @@ def test_shipped_towns(shipped):
 
 
 def test_shipped_small_town_is_what_the_generator_writes(tmp_path):
-    seed, size = SHIPPED_TOWNS["town_small"]
-    generate_town(seed, size, tmp_path / "town_small.xml")
-    for f in ("town_small.xml", "town_small.yaml", "town_small_terrain.bin", "town_small_ground.img"):
+    generate_preset(SHIPPED_TOWNS["town_small"], tmp_path / "town_small.xml")
+    for f in ("town_small.xml", "town_small.yaml", "town_small_terrain.bin"):
         assert (tmp_path / f).read_bytes() == (SCENES / f).read_bytes(), f"{f} is stale: run towngen"
+    # the texture's pixels, not its bytes: PNG bytes depend on the encoder (scenes/ may hold an older one's)
+    f = "town_small_ground.img"
+    new, old = np.asarray(Image.open(tmp_path / f)), np.asarray(Image.open(SCENES / f))
+    assert new.shape == old.shape == (400, 400, 3) and np.array_equal(new, old), f"{f} is stale: run towngen"
+
+
+# ------------------------------------------------------------------------------------ style and presets
+
+
+def test_presets_are_town_presets_of_the_default_style():
+    expected = {
+        "town_small": TownPreset(seed=1, size_m=200.0, n_parked_variants=2, style=TownStyle()),
+        "town_medium": TownPreset(seed=3, size_m=300.0, n_parked_variants=2, style=TownStyle()),
+        "town_large": TownPreset(seed=2, size_m=600.0, n_parked_variants=2, style=TownStyle()),
+    }
+    assert expected == SHIPPED_TOWNS
+    assert all(p.style is DEFAULT_STYLE for p in SHIPPED_TOWNS.values())
+    for name, preset in SHIPPED_TOWNS.items():  # the sidecars in scenes/ say the same
+        info = load_town_info(SCENES / f"{name}.yaml")
+        assert (info.seed, info.size_m, info.parked_variants) == (
+            preset.seed,
+            preset.size_m,
+            preset.n_parked_variants,
+        )
+        assert (info.road_width_m, info.lane_width_m) == (
+            preset.style.road_width_m,
+            preset.style.lane_width_m,
+        )
+    st = DEFAULT_STYLE  # the values the module docstring promises
+    assert (st.road_width_m, st.lane_width_m, st.junction_radius_m, st.ramp_start_m) == (8.0, 3.5, 8.0, 7.5)
+    assert st.max_grade_m_per_m == 0.025 and st.relief_peak_to_peak_m == 1.3
+    assert (st.flat_half_width_m, st.relief_blend_m, st.building_min_offset_m) == (9.5, 16.0, 9.5)
+    assert (st.parking_offset_m, st.pole_offset_m, st.tree_offset_m) == (4.7, 6.6, 7.8)
+    assert (st.block_pitch_m, st.max_block_pitch_m, st.node_jitter_frac) == (75.0, 85.0, (-0.12, 0.12))
+    assert st.building_height_m == (4.0, 30.0) and st.lot_kind_prob == (0.72, 0.14, 0.14)
+    assert (st.parked_car_length_m, st.parked_car_width_m, st.parked_car_height_m) == (
+        (4.2, 4.8),
+        (1.75, 1.9),
+        (1.4, 1.6),
+    )
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        st.road_width_m = 9.0  # type: ignore[misc]
+
+
+def test_every_style_field_has_a_unit_and_a_docstring():
+    body = ast.parse(inspect.getsource(TownStyle)).body[0].body
+    documented = {
+        stmt.target.id
+        for stmt, nxt in itertools.pairwise(body)
+        if isinstance(stmt, ast.AnnAssign)
+        and isinstance(nxt, ast.Expr)
+        and isinstance(nxt.value, ast.Constant)
+        and isinstance(nxt.value.value, str)
+        and nxt.value.value.strip()
+    }
+    names = [f.name for f in dataclasses.fields(TownStyle)]
+    assert set(names) == documented
+    unit = re.compile(r".+_(m|m2|deg|m_per_m|count|frac|prob|shape)")
+    assert [n for n in names if not unit.fullmatch(n)] == []
+
+
+def test_a_custom_style_changes_the_town_as_it_says(tmp_path):
+    # 200 m, default style: span 200 - 2 * 25 = 150 m -> round(150 / 75) + 1 = 3 junctions a side, 75 m apart
+    default = load_town_info(SCENES / "town_small.yaml")
+    assert len(default.nodes) == 9 and len(default.edges) < 12  # roads removed from the 3 x 3 grid
+    # bigger blocks and wider roads: round(150 / 150) + 1 = 2 junctions a side, 150 m apart: one square block
+    big = dataclasses.replace(
+        DEFAULT_STYLE, block_pitch_m=150.0, max_block_pitch_m=160.0, road_width_m=10.0, lane_width_m=4.5
+    )
+    info = generate_town(1, 200.0, tmp_path / "big.xml", style=big)
+    assert len(info.nodes) == 4 and sorted(map(tuple, info.edges)) == [(0, 1), (0, 2), (1, 3), (2, 3)]
+    grid = np.array([[-75.0, -75.0], [75.0, -75.0], [-75.0, 75.0], [75.0, 75.0]])
+    assert np.abs(info.nodes - grid).max() <= 0.12 * 150.0 + 1e-3
+    assert (info.road_width_m, info.lane_width_m) == (10.0, 4.5)
+    m = mujoco.MjModel.from_xml_path(str(tmp_path / "big.xml"))
+    for e in range(4):
+        assert m.geom(f"road_{e}").size[1] == pytest.approx(5.0)  # half the road width
+    x, y, _ = info.spawn
+    assert _seg_dist(np.array([[x, y]]), *info.segments()).min() == pytest.approx(2.25, abs=0.05)
+    header = (tmp_path / "big.xml").read_text().splitlines()[1]
+    assert "style=TownStyle(road_width_m=10.0, lane_width_m=4.5, block_pitch_m=150.0" in header
+    # no roads removed: the full 3 x 3 grid, 2 * 3 * 2 = 12 roads
+    full = generate_town(1, 200.0, tmp_path / "full.xml", style=TownStyle(removed_roads_frac=0.0))
+    assert len(full.nodes) == 9 and len(full.edges) == 12
+    np.testing.assert_array_equal(full.nodes, default.nodes)  # the same draws up to the removal
+
+
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [
+        ({"road_width_m": -8.0}, "road_width_m"),
+        ({"lane_width_m": 0.0}, "lane_width_m"),
+        ({"wall_thickness_m": -0.3}, "wall_thickness_m"),
+        ({"lot_width_m": (24.0, 10.0)}, "lot_width_m"),
+        ({"building_height_m": (30.0, 4.0)}, "building_height_m"),
+        ({"parked_car_yaw_jitter_deg": (2.0, -2.0)}, "parked_car_yaw_jitter_deg"),
+        ({"pole_spacing_m": (-5.0, 38.0)}, "pole_spacing_m"),
+        ({"node_jitter_frac": (0.1,)}, "node_jitter_frac"),
+        ({"lot_kind_prob": (0.5, 0.2, 0.2)}, "lot_kind_prob"),
+        ({"l_shape_prob": 1.5}, "l_shape_prob"),
+        ({"relief_waves_count": 0}, "relief_waves_count"),
+        ({"pole_radius_m": float("nan")}, "pole_radius_m"),
+        ({"tree_gap_m": "wide"}, "tree_gap_m"),
+    ],
+)
+def test_invalid_style_is_one_line_naming_the_field(change, field):
+    for make in (lambda: TownStyle(**change), lambda: dataclasses.replace(DEFAULT_STYLE, **change)):
+        with pytest.raises(InputError) as exc:
+            make()
+        msg = str(exc.value)
+        assert msg.startswith(f"TownStyle.{field} ") and "\n" not in msg, msg
+
+
+def test_png_round_trip_through_pillow(tmp_path, town):
+    rng = np.random.default_rng(5)
+    img = rng.integers(0, 256, size=(37, 53, 3), dtype=np.uint8)  # (H, W, 3), odd sizes
+    path = tmp_path / "x.img"
+    towngen._write_png(path, img)
+    back = Image.open(path)
+    assert back.format == "PNG" and back.mode == "RGB"
+    np.testing.assert_array_equal(np.asarray(back), img)
+    towngen._write_png(tmp_path / "y.img", img)
+    assert (tmp_path / "y.img").read_bytes() == path.read_bytes()  # deterministic
+    # the town's texture as MuJoCo decodes it is the array pillow reads back
+    info, m = town
+    tex = np.asarray(Image.open(info.yaml_path.parent / "t_ground.img"))
+    t = m.texture("ground").id
+    h, w, c = m.tex_height[t], m.tex_width[t], m.tex_nchannel[t]
+    assert tex.shape == (h, w, c) == (300, 300, 3)  # 150 m at 0.5 m per pixel
+    np.testing.assert_array_equal(m.tex_data[m.tex_adr[t] : m.tex_adr[t] + h * w * c].reshape(h, w, c), tex)
 
 
 def _one_line_naming(exc: pytest.ExceptionInfo, path: Path) -> str:
@@ -434,3 +573,5 @@ def test_generate_town_rejects_bad_arguments(tmp_path):
         generate_town(1, 20.0, tmp_path / "t.xml")
     with pytest.raises(InputError, match="n_parked_variants"):
         generate_town(1, SIZE, tmp_path / "t.xml", n_parked_variants=-2)
+    with pytest.raises(InputError, match="TownStyle"):
+        generate_town(1, SIZE, tmp_path / "t.xml", style={"road_width_m": 8.0})
