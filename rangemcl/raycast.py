@@ -249,10 +249,14 @@ def clean_mesh(name: str, vertices, faces) -> tuple[np.ndarray, np.ndarray, np.n
         )
     if not np.isfinite(v).all():
         raise InputError(f"mesh {name!r}: {int((~np.isfinite(v)).any(axis=1).sum())} vertices are not finite")
-    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    area2 = np.linalg.norm(np.cross(b - a, c - a), axis=1)
     scale = max(float(np.ptp(v, axis=0).max()), 1e-9)
-    kept = np.flatnonzero(area2 > 1e-12 * scale * scale).astype(np.int32)
+    keep = np.empty(len(f), bool)
+    chunk = 1 << 20  # faces per pass: the corners of a whole city-sized mesh would be gigabytes
+    for lo in range(0, len(f), chunk):
+        g = f[lo : lo + chunk]
+        a, b, c = v[g[:, 0]], v[g[:, 1]], v[g[:, 2]]
+        keep[lo : lo + len(g)] = np.linalg.norm(np.cross(b - a, c - a), axis=1) > 1e-12 * scale * scale
+    kept = np.flatnonzero(keep).astype(np.int32)
     if len(kept) == 0:
         raise InputError(f"mesh {name!r}: all {len(f)} triangles are degenerate (zero area)")
     return v.astype(np.float32), np.ascontiguousarray(f[kept], dtype=np.int32), kept

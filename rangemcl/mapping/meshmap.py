@@ -438,7 +438,7 @@ class MeshMap:
         if len(face_tile) and (face_tile.min() < 0 or face_tile.max() >= len(t["tiles"])):
             raise InputError(f"{tpath}: face_tile indices out of range 0..{len(t['tiles']) - 1}")
         origin = t["tile_origin_xy"].astype(np.float64)
-        if not np.array_equal(t["tiles"][face_tile], face_tile_ij(v, f, origin, tile_size)):
+        if not _tiling_matches(t["tiles"], face_tile, v, f, origin, tile_size):
             raise InputError(f"{tpath}: the tiling does not match the faces' centroids in mesh.ply")
 
         gpath = map_dir / "ground.npz"
@@ -485,11 +485,28 @@ def map_yaml_text(files: dict, counts: dict, tile_size_m: float, ground_cell_m: 
     return yaml.safe_dump(doc, sort_keys=False, allow_unicode=True)
 
 
+_CHUNK_FACES = 1 << 20  # faces per pass of the whole-mesh checks: bounds their temporaries (about 70 MB)
+
+
 def face_tile_ij(vertices: np.ndarray, faces: np.ndarray, origin_xy, tile_size_m: float) -> np.ndarray:
-    """``(F, 2)`` int64 tile grid indices (i, j) of each face's centroid."""
-    tri = vertices[faces]  # (F, 3, 3)
-    centroid = (tri[:, 0, :2] + tri[:, 1, :2] + tri[:, 2, :2]) / 3.0
-    return np.floor((centroid - np.asarray(origin_xy, np.float64)) / tile_size_m).astype(np.int64)
+    """``(F, 2)`` int64 tile grid indices (i, j) of each face's centroid (computed a chunk of faces at a
+    time, so the temporaries stay small for maps of millions of triangles)."""
+    out = np.empty((len(faces), 2), np.int64)
+    origin = np.asarray(origin_xy, np.float64)
+    for a in range(0, len(faces), _CHUNK_FACES):
+        tri = vertices[faces[a : a + _CHUNK_FACES], :2]  # (n, 3, 2)
+        centroid = (tri[:, 0] + tri[:, 1] + tri[:, 2]) / 3.0
+        out[a : a + len(tri)] = np.floor((centroid - origin) / tile_size_m)
+    return out
+
+
+def _tiling_matches(tiles: np.ndarray, face_tile: np.ndarray, v, f, origin, tile_size: float) -> bool:
+    """Whether every face's stored tile is the tile of its centroid (chunk by chunk)."""
+    for a in range(0, len(f), _CHUNK_FACES):
+        b = a + _CHUNK_FACES
+        if not np.array_equal(tiles[face_tile[a:b]], face_tile_ij(v, f[a:b], origin, tile_size)):
+            return False
+    return True
 
 
 def _tile_keys(i, j) -> np.ndarray:
@@ -521,20 +538,24 @@ def _validate_mesh(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
     whole = np.issubdtype(f.dtype, np.floating) and np.all(f == np.round(f))
     if not (np.issubdtype(f.dtype, np.integer) or whole):
         raise InputError(f"mesh: face indices must be integers, got {f.dtype}")
-    v = v.astype(np.float64)
+    v = np.asarray(v, np.float64)  # no copy when it is float64 already
     bad = ~np.isfinite(v).all(axis=1)
     if bad.any():
         raise InputError(
             f"mesh: {int(bad.sum())} vertices are NaN or infinite (first: vertex {np.argmax(bad)})"
         )
-    f64 = f.astype(np.int64)
-    if f64.min() < 0 or f64.max() >= len(v):
-        raise InputError(f"mesh: face indices out of range 0..{len(v) - 1} (found {f64.min()}..{f64.max()})")
-    tri = v[f64]
-    area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    if not (area2 > 0).any():
+    lo, hi = f.min(), f.max()
+    if lo < 0 or hi >= len(v):
+        raise InputError(f"mesh: face indices out of range 0..{len(v) - 1} (found {lo:g}..{hi:g})")
+    f32 = np.asarray(f, np.int32)  # no copy when it is int32 already
+    # at least one triangle with an area; a chunk at a time (the whole mesh's corners would be 72 B a face)
+    for a in range(0, len(f32), _CHUNK_FACES):
+        tri = v[f32[a : a + _CHUNK_FACES]]
+        if (np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1) > 0).any():
+            break
+    else:
         raise InputError(f"mesh: all {len(f)} triangles are degenerate (zero area)")
-    return v, f64.astype(np.int32)
+    return v, f32
 
 
 # ---------------------------------------------------------------------------------------------- import
