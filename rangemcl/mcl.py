@@ -172,6 +172,8 @@ class RefineSettings:
     min_inliers: int = 30  # fewer rays taking part: no refinement
     min_information: float = 10.0  # directions the scan constrains less than this are left alone
     lever_m: float = 10.0  # yaw compared with translation at this distance
+    min_hit_height_m: float | None = 2.0  # rays hitting the map lower above the ground take no part
+    # (parked cars, people: they change between drives), unless too few hit higher; None: every ray
     gate_m: float = 0.3  # a correction is taken when within this + 2 x the cloud's spread (x, y) ...
     gate_deg: float = 1.0  # ... and this + 2 x the cloud's yaw spread; else refused and counted
 
@@ -261,6 +263,8 @@ class LocalizerSettings:
             positive["recovery.min_residual_m"] = r.min_residual_m
         if self.sensor_height_m is not None:
             positive["sensor_height_m"] = self.sensor_height_m
+        if self.refine.min_hit_height_m is not None:
+            positive["refine.min_hit_height_m"] = self.refine.min_hit_height_m
         for key, value in positive.items():
             if not (math.isfinite(value) and value > 0):
                 raise InputError(f"{where}: {key} must be > 0, got {value}")
@@ -472,6 +476,7 @@ def build_localizer(
             min_inliers=f.min_inliers,
             min_information=f.min_information,
             lever_m=f.lever_m,
+            min_hit_height_m=f.min_hit_height_m,
         )
         if f.enabled
         else None

@@ -426,7 +426,10 @@ class MonteCarloLocalizer:
         """Align the update's rays to the mesh from the estimate (:mod:`rangemcl.localization.refine`);
         take the correction (the whole cloud moves by it) when it lies within the cloud's own spread."""
         est = self.last_estimate
-        ref = self.refiner.refine(rays.directions, rays.ranges, est, float(self.sensor_z(est[None, :2])[0]))
+        sensor_z = float(self.sensor_z(est[None, :2])[0])
+        ref = self.refiner.refine(
+            rays.directions, rays.ranges, est, sensor_z, ground_z=sensor_z - self.sensor_height_m
+        )
         if ref is None:
             return {}
         w = self.weights

@@ -9,6 +9,10 @@ back only by resampling, so the estimate lags by decimetres. Here the scan itsel
 * each ray that hits the map within ``max_residual_m`` of its measured range gives a point-to-plane
   residual ``e = n · (p − q)``, with ``p`` the measured point and ``q`` the map's surface point on the same
   ray (projective association, re-cast at every iteration);
+* rays whose map hit lies lower than ``min_hit_height_m`` above the ground take no part when enough others
+  do: parked cars and people change between the mapping drive and today's, and a parked car's front or
+  back, often the only surface across a street, dragged the pose along it (HDL-64E on ``town_large``,
+  tracking: 0.052 m RMSE with every hit, 0.019 m without the lowest 2 m);
 * Gauss-Newton on ``(x, y, yaw)`` (height, roll and pitch stay with the ground grid and the IMU), Huber
   weights, a few iterations;
 * only the directions the scan constrains move: the normal equations are solved in the eigenbasis of
@@ -58,6 +62,9 @@ class ScanRefiner:
         min_information: a direction's information (sum of squared unit Jacobians) below this is not moved.
         lever_m: yaw is compared with translation at this distance (the scan's typical range).
         min_incidence: rays meeting their surface at ``|n · d|`` below this (grazing) take no part.
+        min_hit_height_m: rays whose map hit lies lower than this above the ground under the sensor take
+            no part (None: all heights): parked cars and people, which change between drives, are low.
+            Where fewer than ``min_inliers`` rays hit higher (an 8-beam sensor looking down), all take part.
     """
 
     def __init__(
@@ -71,6 +78,7 @@ class ScanRefiner:
         min_information: float = 10.0,
         lever_m: float = 10.0,
         min_incidence: float = 0.2,
+        min_hit_height_m: float | None = None,
     ):
         self.caster = caster
         self.iterations = int(iterations)
@@ -80,8 +88,9 @@ class ScanRefiner:
         self.min_information = float(min_information)
         self.lever_m = float(lever_m)
         self.min_incidence = float(min_incidence)
+        self.min_hit_height_m = None if min_hit_height_m is None else float(min_hit_height_m)
 
-    def _linearize(self, directions, ranges, pose, sensor_z):
+    def _linearize(self, directions, ranges, pose, sensor_z, ground_z=None):
         """Residuals, Jacobians (yaw column scaled by 1/lever) and Huber weights of the rays that take
         part at ``pose``."""
         c, s = math.cos(pose[2]), math.sin(pose[2])
@@ -96,6 +105,10 @@ class ScanRefiner:
         along = ranges - t  # measured minus map, along the ray
         cos_i = np.einsum("ij,ij->i", n, d)
         ok = hits.hit & (np.abs(along) <= self.max_residual_m) & (np.abs(cos_i) >= self.min_incidence)
+        if self.min_hit_height_m is not None and ground_z is not None:
+            high = ok & (sensor_z + t * d[:, 2] >= ground_z + self.min_hit_height_m)
+            if high.sum() >= self.min_inliers:  # else (a sensor that sees only the lowest metres): all
+                ok = high
         e = along[ok] * cos_i[ok]  # n · (p − q), p − q = (r − t) d
         n, dd, r = n[ok], d[ok], ranges[ok]
         px, py = r * dd[:, 0], r * dd[:, 1]  # measured point relative to the sensor, world axes
@@ -112,10 +125,13 @@ class ScanRefiner:
         worst = k * (self.max_residual_m - 0.5 * k)
         return float((rho.sum() + (rays - len(e)) * worst) / max(1, rays))
 
-    def refine(self, directions, ranges, pose, sensor_z: float) -> Refinement | None:
+    def refine(
+        self, directions, ranges, pose, sensor_z: float, ground_z: float | None = None
+    ) -> Refinement | None:
         """Align the rays (``directions`` ``(R, 3)`` unit vectors in the levelled sensor frame, measured
         ``ranges`` ``(R,)``) to the map, starting at ``pose`` ``(x, y, yaw)`` with the sensor at world
-        height ``sensor_z``. None when fewer than ``min_inliers`` rays take part."""
+        height ``sensor_z`` (the ground under it at ``ground_z``, for ``min_hit_height_m``). None when
+        fewer than ``min_inliers`` rays take part."""
         directions = np.asarray(directions, np.float64).reshape(-1, 3)
         ranges = np.asarray(ranges, np.float64).reshape(-1)
         start = np.asarray(pose, np.float64).reshape(3)
@@ -123,7 +139,7 @@ class ScanRefiner:
         start_cost = math.nan
         best = None  # (cost, pose, residuals, constrained, iteration): the best pose visited
         for it in range(1, self.iterations + 2):
-            e, jac, w = self._linearize(directions, ranges, x, sensor_z)
+            e, jac, w = self._linearize(directions, ranges, x, sensor_z, ground_z)
             if len(e) < self.min_inliers:
                 break
             cost = self._cost(e, len(ranges))

@@ -133,6 +133,7 @@ def _track(corridor, calibrate: bool):
     s = LocalizerSettings()
     s.observation = ObservationSettings(rays=300, max_range_m=40.0)
     s.motion.calibrate_scale = s.motion.calibrate_gyro_bias = s.refine.enabled = calibrate
+    s.refine.min_hit_height_m = None  # nothing changes between this map and its scans: every hit counts
     loc = build_localizer(m, s, seed=2, caster=caster)
     n = 220
     path = np.column_stack([np.arange(n) * 0.8, np.zeros(n), np.zeros(n)])  # 8 m/s, 175 m

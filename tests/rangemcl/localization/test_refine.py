@@ -125,3 +125,24 @@ def test_the_filter_refuses_a_refinement_outside_its_cloud(yard):
     assert math.hypot(*(info.estimate[:2] - wrong[:2])) < 0.1  # kept its own estimate
     loc, info = first_update(0.5)
     assert info.refined == 1 and loc.refinements == 1
+
+
+def test_low_hits_can_be_left_out_so_a_moved_parked_car_does_not_pull():
+    """In a street of tall walls the only along-street constraint is a low box (a parked car); in the scan
+    it stands 0.3 m further on. With every hit taking part the refinement drags the pose along the street;
+    with ``min_hit_height_m`` above the box the street's axis is left where it was."""
+    street = [
+        meshgen.grid_patch((-60.0, -10.0, 0.0), (120.0, 0, 0), (0, 20.0, 0), 30, 5),
+        meshgen.box((120.0, 0.5, 6.0), (0.0, -5.0, 3.0), cell_m=4.0),
+        meshgen.box((120.0, 0.5, 6.0), (0.0, 5.0, 3.0), cell_m=4.0),
+    ]
+    map_caster, _v, _f = _world([*street, meshgen.box((0.5, 4.0, 1.4), (8.0, 0.0, 0.7), cell_m=0.5)])
+    scan_caster, _v, _f = _world([*street, meshgen.box((0.5, 4.0, 1.4), (8.3, 0.0, 0.7), cell_m=0.5)])
+    d, r = _rays(scan_caster, np.zeros(3), spec="hdl-64e", count=20000)
+    pulled = ScanRefiner(map_caster).refine(d, r, np.zeros(3), HEIGHT, ground_z=0.0)
+    assert pulled is not None and pulled.constrained == 3 and pulled.pose[0] < -0.1
+    held = ScanRefiner(map_caster, min_hit_height_m=2.0).refine(d, r, np.zeros(3), HEIGHT, ground_z=0.0)
+    assert held is not None and held.constrained == 2 and abs(held.pose[0]) < 1e-3
+    # a threshold above everything the scan hits (an 8-beam sensor looking down): all hits take part again
+    low = ScanRefiner(map_caster, min_hit_height_m=10.0).refine(d, r, np.zeros(3), HEIGHT, ground_z=0.0)
+    assert low is not None and np.array_equal(low.pose, pulled.pose)
