@@ -38,28 +38,30 @@ def process_pool(workers: int, context: str | None = None) -> Iterator[ProcessPo
         _start_workers(pool, workers)
         yield pool
     except BaseException:
-        mine = [p for p in multiprocessing.active_children() if p not in before]
-        for p in mine:
-            p.terminate()
-        # wait for the exits on the sentinels, not with join(): the pool's manager thread, seeing its
-        # workers die, reaps them itself, and two threads reaping one child leave it listed as running
-        for p in mine:
-            if not wait([p.sentinel], timeout=10):
-                p.kill()
-                wait([p.sentinel])
-        # the manager thread fails the pending jobs (BrokenProcessPool), reaps the workers and ends;
-        # shutdown waits for it (a first shutdown(wait=False) would forget the thread and not wait).
-        # Executor.map cancels its pending futures when the consumer is interrupted, and the manager
-        # thread then fails to fail them ("InvalidStateError: CANCELLED", printed from that thread by
-        # CPython 3.11): harmless, so kept off the user's terminal
+        # the pool's manager thread sees its workers die and fails what was pending; what it raises while
+        # this teardown kills them (CPython 3.11: "InvalidStateError: CANCELLED" for the futures
+        # Executor.map cancelled, and others when a stop lands just after the workers started) is a
+        # consequence of the teardown: kept off the user's terminal from before the first kill on
+        manager = getattr(pool, "_executor_manager_thread", None)
         previous = threading.excepthook
 
         def quiet(args) -> None:
-            if not isinstance(args.exc_value, InvalidStateError):
+            if not (isinstance(args.exc_value, InvalidStateError) or args.thread is manager):
                 previous(args)
 
         threading.excepthook = quiet
         try:
+            mine = [p for p in multiprocessing.active_children() if p not in before]
+            for p in mine:
+                p.terminate()
+            # wait for the exits on the sentinels, not with join(): the pool's manager thread, seeing its
+            # workers die, reaps them itself, and two threads reaping one child leave it listed as running
+            for p in mine:
+                if not wait([p.sentinel], timeout=10):
+                    p.kill()
+                    wait([p.sentinel])
+            # the manager thread fails the pending jobs (BrokenProcessPool), reaps the workers and ends;
+            # shutdown waits for it (a first shutdown(wait=False) would forget the thread and not wait)
             pool.shutdown(wait=True, cancel_futures=True)
         finally:
             threading.excepthook = previous

@@ -106,7 +106,8 @@ class ScanRefiner:
         cos_i = np.einsum("ij,ij->i", n, d)
         ok = hits.hit & (np.abs(along) <= self.max_residual_m) & (np.abs(cos_i) >= self.min_incidence)
         if self.min_hit_height_m is not None and ground_z is not None:
-            high = ok & (sensor_z + t * d[:, 2] >= ground_z + self.min_hit_height_m)
+            hit_z = sensor_z + np.where(ok, t, 0.0) * d[:, 2]  # misses have t = inf
+            high = ok & (hit_z >= ground_z + self.min_hit_height_m)
             if high.sum() >= self.min_inliers:  # else (a sensor that sees only the lowest metres): all
                 ok = high
         e = along[ok] * cos_i[ok]  # n · (p − q), p − q = (r − t) d
