@@ -19,22 +19,15 @@ _RUNTIME_KEYS = ("complete", "frames", "scan_stamp", "scan_times", "sensor_to_ba
 
 def sensor_mount(meta: dict) -> np.ndarray:
     """``T_base_sensor`` from a recording's meta: its sensor's mount, or a bag's TF, else identity."""
-    from rangemcl.ros.bag import sensor_to_base_transform
+    from rangemcl.lidar_odometry import mount_of
 
     sensor = meta.get("sensor") if isinstance(meta, dict) else None
     mount = sensor.get("mount") if isinstance(sensor, dict) else None
-    if not isinstance(mount, dict):
-        mount = meta.get("sensor_to_base") if isinstance(meta, dict) else None
-    if isinstance(mount, dict):
-        try:
-            return sensor_to_base_transform(
-                [*mount.get("xyz_m", [0, 0, 0]), *mount.get("rpy_deg", [0, 0, 0])]
-            )
-        except (InputError, TypeError, ValueError):
-            raise InputError(
-                f"the recording's sensor mount {mount} is not x,y,z (m) and roll,pitch,yaw (deg)"
-            ) from None
-    return np.eye(4)
+    if mount is None and isinstance(meta, dict):
+        mount = meta.get("sensor_to_base")
+    if isinstance(mount, dict):  # a bag's TF mount carries its source beside xyz_m and rpy_deg
+        mount = {k: mount[k] for k in ("xyz_m", "rpy_deg") if k in mount}
+    return mount_of({"sensor": {"mount": mount}}, "the recording's meta")
 
 
 def convert(

@@ -31,6 +31,7 @@ says ``complete: false``. Record to a KITTI folder when a kill must leave a read
 
 from __future__ import annotations
 
+import bisect
 import contextlib
 import math
 import os
@@ -486,10 +487,9 @@ def sensor_to_base_transform(values) -> np.ndarray:
         raise InputError(
             f"--sensor-to-base {values}: expected 6 finite numbers x,y,z,roll,pitch,yaw (m, deg)"
         )
-    T = np.eye(4)
-    T[:3, :3] = _rz(math.radians(v[5])) @ _ry(math.radians(v[4])) @ _rx(math.radians(v[3]))
-    T[:3, 3] = v[:3]
-    return T
+    from rangemcl.sensors import _transform_from_xyz_rpy
+
+    return _transform_from_xyz_rpy(v[:3], v[3:])
 
 
 @dataclass
@@ -539,7 +539,7 @@ class BagSequence:
         cons = [c for c in r.connections if c.topic == self.topic]
         ns = self._log_ns[k]
         # the k-th message of the topic: several may share a log time
-        rank = k - self._log_ns.index(ns)
+        rank = k - bisect.bisect_left(self._log_ns, ns)  # log times are in order
         for j, (con, _, raw) in enumerate(r.messages(connections=cons, start=ns, stop=ns + 1)):
             if j == rank:
                 msg = r.deserialize(raw, con.msgtype)
