@@ -53,15 +53,14 @@ import os, signal, sys, threading
 from concurrent.futures import ProcessPoolExecutor
 from rangemcl.pool import process_pool
 
+spawned = []
+
+
 def stop(signum, frame):  # the console scripts' SIGTERM handler
     raise KeyboardInterrupt
 
-signal.signal(signal.SIGTERM, stop)
-threading.Thread(target=lambda: None).start()  # threads started earlier do not share a signal mask
-spawned = []
-original = ProcessPoolExecutor._spawn_process
 
-def spawn_after_a_stop(self):
+def spawn_after_a_stop(self, original=ProcessPoolExecutor._spawn_process):
     # SIGTERM, sent from another thread, is pending when the worker is spawned: Python runs its handler
     # in the main thread at the next instruction, in the middle of writing the start-up message
     if not spawned:
@@ -71,8 +70,13 @@ def spawn_after_a_stop(self):
     original(self)
     spawned.append(1)
 
-ProcessPoolExecutor._spawn_process = spawn_after_a_stop
-if __name__ == "__main__":
+
+if __name__ == "__main__":  # a spawned worker imports this file too: only the parent sets things up
+    signal.signal(signal.SIGTERM, stop)
+    # a thread started earlier (as a thread pool's) lives on with the signal mask of its start: the
+    # kernel hands it the signal whatever the main thread blocks
+    threading.Thread(target=threading.Event().wait, daemon=True).start()
+    ProcessPoolExecutor._spawn_process = spawn_after_a_stop
     try:
         with process_pool(2, "spawn"):
             print("not stopped")
