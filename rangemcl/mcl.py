@@ -174,6 +174,8 @@ class RefineSettings:
     lever_m: float = 10.0  # yaw compared with translation at this distance
     min_hit_height_m: float | None = 2.0  # rays hitting the map lower above the ground take no part
     # (parked cars, people: they change between drives), unless too few hit higher; None: every ray
+    all_heights_updates: int = 10  # ... except in this many updates after a search declares convergence,
+    # when the cloud's place along a street may still be off by decimetres that only low surfaces fix
     gate_m: float = 0.3  # a correction is taken when within this + 2 x the cloud's spread (x, y) ...
     gate_deg: float = 1.0  # ... and this + 2 x the cloud's yaw spread; else refused and counted
 
@@ -269,6 +271,7 @@ class LocalizerSettings:
             if not (math.isfinite(value) and value > 0):
                 raise InputError(f"{where}: {key} must be > 0, got {value}")
         non_negative = {
+            "refine.all_heights_updates": self.refine.all_heights_updates,
             "particles.tracking_sigma_xy_m": p.tracking_sigma_xy_m,
             "particles.tracking_sigma_yaw_deg": p.tracking_sigma_yaw_deg,
             "particles.jitter_xy_m": p.jitter_xy_m,
@@ -489,6 +492,7 @@ def build_localizer(
         calibrator=calibrator,
         refine_gate_m=f.gate_m,
         refine_gate_deg=f.gate_deg,
+        refine_all_heights_updates=f.all_heights_updates,
         calibration_settle_updates=m.calibration_settle_updates,
         residual_model=residual_model,
         select_rays=ray_selector(o),

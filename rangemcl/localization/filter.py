@@ -123,6 +123,7 @@ class MonteCarloLocalizer:
         calibrator: OdometryCalibrator | None = None,
         refine_gate_m: float = 0.3,
         refine_gate_deg: float = 1.0,
+        refine_all_heights_updates: int = 10,
         calibration_settle_updates: int = 10,
         sensor_height_m: float = 1.73,
         # motion and scan
@@ -184,6 +185,7 @@ class MonteCarloLocalizer:
         self.refiner = refiner
         self.calibrator = calibrator
         self.refine_gate = (float(refine_gate_m), math.radians(refine_gate_deg))
+        self.refine_all_heights_updates = int(refine_all_heights_updates)
         self.calibration_settle_updates = int(calibration_settle_updates)
         self.sensor_height_m = float(sensor_height_m)
         self.update_distance_m = float(update_distance_m)
@@ -243,6 +245,7 @@ class MonteCarloLocalizer:
         self.refused_refinements = 0  # ... and refused (outside the cloud's spread)
         self._calib_ref: np.ndarray | None = None  # estimate at the last converged update
         self._settled = 0  # updates since the last convergence (or tracking start)
+        self._since_search = -1  # updates since the search declared convergence (-1: tracking start)
         self._raw_since_ref = np.zeros(3)  # raw odometry since then (in that pose) ...
         self._dt_since_ref = 0.0  # ... and the time it took (NaN: a frame without a time)
 
@@ -300,8 +303,10 @@ class MonteCarloLocalizer:
         out[:, 2] = wrap_angle(yaw[k] + self.rng.normal(0.0, self.prior_yaw_sigma, n))
         return out
 
-    def start_at(self, pose_xyyaw, n: int | None = None) -> None:
-        """Pose tracking: ``n`` particles around a known start pose."""
+    def start_at(self, pose_xyyaw, n: int | None = None, *, settle: bool = False) -> None:
+        """Pose tracking: ``n`` particles around a known start pose. ``settle``: the pose is only
+        approximate (a GNSS fix, a hand-placed pose), so the first updates refine with every hit, as after a
+        search's convergence (``refine_all_heights_updates``)."""
         n = int(n or self.tracking_count)
         x0 = np.asarray(pose_xyyaw, np.float64).reshape(3)
         if not np.isfinite(x0).all():
@@ -316,6 +321,7 @@ class MonteCarloLocalizer:
         parts[:, 2] = wrap_angle(parts[:, 2])
         self._set_particles(parts)
         self.converged = True
+        self._since_search = 0 if settle else -1
         self._prior_pending = False
         self.last_estimate = x0.copy()
 
@@ -406,6 +412,8 @@ class MonteCarloLocalizer:
                     and not (self.lost is not None and self.lost.doubtful)
                 ):
                     info.update(self._refine(rays))
+                if self.converged and self._since_search >= 0:
+                    self._since_search += 1
                 self._calibrate(info)
         if self.calibrator is not None:
             info.update(
@@ -427,8 +435,15 @@ class MonteCarloLocalizer:
         take the correction (the whole cloud moves by it) when it lies within the cloud's own spread."""
         est = self.last_estimate
         sensor_z = float(self.sensor_z(est[None, :2])[0])
+        # just after a search declared convergence the cloud's place along a street may still be off by
+        # decimetres that the facades do not constrain: the lowest metres (kerbs, parked cars) take part
+        all_heights = 0 <= self._since_search < self.refine_all_heights_updates
         ref = self.refiner.refine(
-            rays.directions, rays.ranges, est, sensor_z, ground_z=sensor_z - self.sensor_height_m
+            rays.directions,
+            rays.ranges,
+            est,
+            sensor_z,
+            ground_z=None if all_heights else sensor_z - self.sensor_height_m,
         )
         if ref is None:
             return {}
@@ -532,6 +547,7 @@ class MonteCarloLocalizer:
             elif self._tiles_converged():
                 self._resample(w, min(self.converged_count, n))
                 self.converged = True
+                self._since_search = 0
                 self._start_probation()
                 out.update(resampled=True, converged_now=True)
             elif effective_sample_size(w) < self.resample_neff_ratio * n:
@@ -572,6 +588,7 @@ class MonteCarloLocalizer:
             self.particles = self.particles[inside]
             self._resample(wi, self.converged_count)
             self.converged = True
+            self._since_search = 0
             self._leader = None
             self.last_estimate = pose_estimate(self.particles, self.weights, self.estimate_best_share)
             self._start_probation()
