@@ -150,9 +150,9 @@ def test_low_hits_can_be_left_out_so_a_moved_parked_car_does_not_pull():
 
 def test_after_a_convergence_the_low_hits_pull_in_an_offset_along_the_street():
     """A cloud that has just converged 0.4 m off along a street of tall walls (as a global search can
-    leave it): in the first updates after the convergence the refinement uses the low surfaces too (here a
-    low barrier, the same in map and scan, the only thing across the street) and pulls the estimate in; a tracking
-    start taken as exact leaves the street's axis to the particles, as revision 6 did."""
+    leave it): in the first updates after the convergence the refinement uses the low surfaces too (here
+    a low barrier, the same in map and scan, the only thing across the street) and pulls the estimate
+    in; a tracking start taken as exact leaves the street's axis to the particles, as revision 6 did."""
     parts = [
         meshgen.grid_patch((-60.0, -10.0, 0.0), (120.0, 0, 0), (0, 20.0, 0), 30, 5),
         meshgen.box((120.0, 0.5, 6.0), (0.0, -5.0, 3.0), cell_m=4.0),
