@@ -18,7 +18,7 @@ from functools import partial
 import numpy as np
 
 from rangemcl.errors import InputError
-from rangemcl.localization.calibration import OdometryCalibrator
+from rangemcl.localization.calibration import OdometryCalibrator, ParticleCalibration
 from rangemcl.localization.filter import MonteCarloLocalizer, StepInfo
 from rangemcl.localization.lost import LostDetector, SignalWatch
 from rangemcl.localization.place_prior import PriorParams
@@ -80,6 +80,12 @@ class MotionSettings:
     calibration_prior_m: float = 3.0  # weight of the configured scale, as metres of evidence
     calibration_prior_s: float = 0.3  # weight of the configured bias, as seconds of evidence
     calibration_settle_updates: int = 10  # updates after a convergence left out (the cloud settles)
+    calibration: str = "estimator"  # estimator (a slow estimator on the filter's corrections) | particles
+    # (scale and bias as extra particle state; rangemcl.localization.calibration.ParticleCalibration): ...
+    calibration_sigma_scale: float = 0.03  # ... each particle's scale drawn this far around the estimate
+    calibration_sigma_bias_deg_s: float = 0.5  # ... and its bias, at a convergence
+    calibration_walk_scale: float = 0.001  # ... random walk of a particle's scale per sqrt(metre)
+    calibration_walk_bias_deg_s: float = 0.005  # ... and of its bias per sqrt(second)
 
 
 @dataclass
@@ -303,6 +309,10 @@ class LocalizerSettings:
             "motion.calibration_prior_m": m.calibration_prior_m,
             "motion.calibration_prior_s": m.calibration_prior_s,
             "motion.calibration_settle_updates": m.calibration_settle_updates,
+            "motion.calibration_sigma_scale": m.calibration_sigma_scale,
+            "motion.calibration_sigma_bias_deg_s": m.calibration_sigma_bias_deg_s,
+            "motion.calibration_walk_scale": m.calibration_walk_scale,
+            "motion.calibration_walk_bias_deg_s": m.calibration_walk_bias_deg_s,
             "refine.min_information": self.refine.min_information,
             "refine.gate_m": self.refine.gate_m,
             "refine.gate_deg": self.refine.gate_deg,
@@ -315,6 +325,10 @@ class LocalizerSettings:
         for key in ("prior_share", "inject_share", "inject_below_share"):
             if not 0 <= getattr(self.init, key) <= 1:
                 raise InputError(f"{where}: init.{key} must be in [0, 1], got {getattr(self.init, key)}")
+        if m.calibration not in ("estimator", "particles"):
+            raise InputError(
+                f"{where}: motion.calibration {m.calibration!r}: expected 'estimator' or 'particles'"
+            )
         if c.method not in ("hypotheses", "tiles"):
             raise InputError(f"{where}: convergence.method {c.method!r}: expected 'hypotheses' or 'tiles'")
         if r.signal not in ("inliers", "residual"):
@@ -459,16 +473,28 @@ def build_localizer(
             opinion_hits=r.opinion_hits,
             consistent_m=c.separation_m,
         )
-    calibrator = OdometryCalibrator(
-        m.odometry_scale,
-        math.radians(m.gyro_bias_deg_s),
-        estimate_scale=m.calibrate_scale,
-        estimate_bias=m.calibrate_gyro_bias,
-        window_m=m.calibration_window_m,
-        window_s=m.calibration_window_s,
-        prior_m=m.calibration_prior_m,
-        prior_s=m.calibration_prior_s,
-    )
+    if m.calibration == "particles":
+        calibrator = ParticleCalibration(
+            m.odometry_scale,
+            math.radians(m.gyro_bias_deg_s),
+            estimate_scale=m.calibrate_scale,
+            estimate_bias=m.calibrate_gyro_bias,
+            sigma_scale=m.calibration_sigma_scale,
+            sigma_bias_rad_s=math.radians(m.calibration_sigma_bias_deg_s),
+            walk_scale=m.calibration_walk_scale,
+            walk_bias_rad_s=math.radians(m.calibration_walk_bias_deg_s),
+        )
+    else:
+        calibrator = OdometryCalibrator(
+            m.odometry_scale,
+            math.radians(m.gyro_bias_deg_s),
+            estimate_scale=m.calibrate_scale,
+            estimate_bias=m.calibrate_gyro_bias,
+            window_m=m.calibration_window_m,
+            window_s=m.calibration_window_s,
+            prior_m=m.calibration_prior_m,
+            prior_s=m.calibration_prior_s,
+        )
     f = s.refine
     refiner = (
         ScanRefiner(

@@ -125,3 +125,114 @@ class OdometryCalibrator:
         self.distance_m += dist
         self.observed += 1
         return True
+
+
+class ParticleCalibration:
+    """The odometry's scale and the gyro's bias as extra state of a converged filter's particles: the
+    alternative to :class:`OdometryCalibrator`'s slow estimator that issue 19 asks to measure against it
+    (``motion.calibration: particles``; README "Accuracy that does not lean on the odometry").
+
+    * When the filter converges (or starts tracking), every particle draws its own scale and bias around
+      the running estimate (``sigma_scale``, ``sigma_bias_rad_s``);
+    * each prediction moves a particle with its own calibration: its distance times its scale, its turn
+      less its bias times the elapsed time; the states take a random walk (``walk_scale`` per
+      √metre driven, ``walk_bias_rad_s`` per √second) so that resampling does not collapse them;
+    * the weighting selects the particles whose calibration predicts the scan, resampling carries their
+      states along, and the estimate is the states' weighted mean.
+
+    While the filter searches (not converged) every particle moves with the running estimate, as with
+    the slow estimator. Same reading interface as :class:`OdometryCalibrator` (``scale``, ``gyro_bias``,
+    ``correct``, ``observe``, ``distance_m``, ``observed``, ``rejected``).
+    """
+
+    def __init__(
+        self,
+        scale: float = 1.0,
+        gyro_bias_rad_s: float = 0.0,
+        *,
+        estimate_scale: bool = True,
+        estimate_bias: bool = True,
+        sigma_scale: float = 0.03,
+        sigma_bias_rad_s: float = math.radians(0.5),
+        walk_scale: float = 0.001,
+        walk_bias_rad_s: float = math.radians(0.005),
+        min_scale: float = 0.8,
+        max_scale: float = 1.25,
+    ):
+        self.scale0 = float(scale)
+        self.bias0 = float(gyro_bias_rad_s)
+        self.estimate_scale = bool(estimate_scale)
+        self.estimate_bias = bool(estimate_bias)
+        self.sigma_scale = float(sigma_scale) if self.estimate_scale else 0.0
+        self.sigma_bias = float(sigma_bias_rad_s) if self.estimate_bias else 0.0
+        self.walk_scale = float(walk_scale) if self.estimate_scale else 0.0
+        self.walk_bias = float(walk_bias_rad_s) if self.estimate_bias else 0.0
+        self.min_scale = float(min_scale)
+        self.max_scale = float(max_scale)
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to the configured values, no particle state."""
+        self.scale = self.scale0
+        self.gyro_bias = self.bias0
+        self.state: np.ndarray | None = None  # (N, 2) scale, bias (rad/s) per particle while converged
+        self.distance_m = 0.0
+        self.observed = 0
+        self.rejected = 0
+
+    def correct(self, delta, dt_s: float | None) -> np.ndarray:
+        """An odometry increment calibrated with the running estimate (the filter's own prediction of its
+        estimate, and every particle's while it searches)."""
+        d = np.asarray(delta, np.float64).reshape(3)
+        out = np.array([d[0] * self.scale, d[1] * self.scale, d[2]])
+        if dt_s is not None and math.isfinite(dt_s):
+            out[2] = d[2] - self.gyro_bias * dt_s
+        return out
+
+    def observe(self, raw_motion, dt_s, estimate_before, estimate_after) -> bool:
+        """The evidence is in the particles' weights: only the distance is counted."""
+        o = np.asarray(raw_motion, np.float64).reshape(3)
+        self.distance_m += math.hypot(o[0], o[1])
+        self.observed += 1
+        return True
+
+    def start(self, n: int, rng: np.random.Generator) -> None:
+        """``n`` particle states drawn around the running estimate (at a convergence or tracking start)."""
+        s = self.scale + rng.normal(0.0, 1.0, n) * self.sigma_scale
+        b = self.gyro_bias + rng.normal(0.0, 1.0, n) * self.sigma_bias
+        self.state = np.column_stack([np.clip(s, self.min_scale, self.max_scale), b])
+
+    def stop(self) -> None:
+        """The filter searches again: the states go, the running estimate stays."""
+        self.state = None
+
+    def resampled(self, index: np.ndarray) -> None:
+        if self.state is not None:
+            self.state = self.state[index]
+
+    def increments(self, increment, dt_s: float, moved_m: float, rng: np.random.Generator):
+        """Per-particle ``(rot1, trans, rot2)`` from the increment calibrated with the running estimate
+        (``correct``): each particle's own scale and bias replace the running ones; then the states' random
+        walk over ``moved_m`` metres and ``dt_s`` seconds."""
+        rot1, trans, rot2 = increment
+        s, b = self.state[:, 0], self.state[:, 1]
+        trans_i = trans * s / self.scale if self.scale > 0 else np.full(len(s), trans)
+        dt = dt_s if dt_s is not None and math.isfinite(dt_s) and dt_s > 0 else 0.0
+        rot2_i = rot2 - (b - self.gyro_bias) * dt
+        n = len(s)
+        if self.walk_scale > 0 and moved_m > 0:
+            s = s + rng.normal(0.0, 1.0, n) * self.walk_scale * math.sqrt(moved_m)
+        if self.walk_bias > 0 and dt > 0:
+            b = b + rng.normal(0.0, 1.0, n) * self.walk_bias * math.sqrt(dt)
+        self.state = np.column_stack([np.clip(s, self.min_scale, self.max_scale), b])
+        return rot1, trans_i, rot2_i
+
+    def weighted(self, weights: np.ndarray) -> None:
+        """The running estimate from the particles' weights (after an update)."""
+        if self.state is None or len(weights) != len(self.state):
+            return
+        w = np.asarray(weights, np.float64)
+        if self.estimate_scale:
+            self.scale = float(np.sum(w * self.state[:, 0]))
+        if self.estimate_bias:
+            self.gyro_bias = float(np.sum(w * self.state[:, 1]))

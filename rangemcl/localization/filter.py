@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rangemcl.errors import InputError
-from rangemcl.localization.calibration import OdometryCalibrator
+from rangemcl.localization.calibration import OdometryCalibrator, ParticleCalibration
 from rangemcl.localization.hypotheses import (
     ConvergenceTest,
     cluster_labels,
@@ -120,7 +120,7 @@ class MonteCarloLocalizer:
         lost: LostDetector | None,
         rng: np.random.Generator,
         refiner: ScanRefiner | None = None,
-        calibrator: OdometryCalibrator | None = None,
+        calibrator: OdometryCalibrator | ParticleCalibration | None = None,
         refine_gate_m: float = 0.3,
         refine_gate_deg: float = 1.0,
         refine_all_heights_updates: int = 10,
@@ -248,6 +248,7 @@ class MonteCarloLocalizer:
         self._since_search = -1  # updates since the search declared convergence (-1: tracking start)
         self._raw_since_ref = np.zeros(3)  # raw odometry since then (in that pose) ...
         self._dt_since_ref = 0.0  # ... and the time it took (NaN: a frame without a time)
+        self._dt_pending = 0.0  # seconds of the odometry not yet applied to the particles
 
     @property
     def vetoed_alarms(self) -> int:
@@ -282,6 +283,8 @@ class MonteCarloLocalizer:
             )
         )
         self.converged = False
+        if self._state_calibration():
+            self.calibrator.stop()
         self._prior_pending = self.use_prior
         if self._prior_pending:
             self.place_prior()
@@ -320,7 +323,7 @@ class MonteCarloLocalizer:
         parts = x0 + self.rng.normal(0.0, 1.0, (n, 3)) * self.tracking_sigma
         parts[:, 2] = wrap_angle(parts[:, 2])
         self._set_particles(parts)
-        self.converged = True
+        self._converge(search=False)
         self._since_search = 0 if settle else -1
         self._prior_pending = False
         self.last_estimate = x0.copy()
@@ -368,6 +371,7 @@ class MonteCarloLocalizer:
             raise InputError(f"odometry increment must be finite, got {delta}")
         self._raw_since_ref = se2_compose(self._raw_since_ref, delta)
         self._dt_since_ref += dt_s if dt_s is not None else math.nan
+        self._dt_pending += dt_s if dt_s is not None else math.nan
         if self.calibrator is not None:
             delta = self.calibrator.correct(delta, dt_s)
         self.pending = se2_compose(self.pending, delta)
@@ -405,6 +409,8 @@ class MonteCarloLocalizer:
                 if self._prior_pending and levelled is not None:
                     self._draw_initial_prior(levelled)
                 info.update(self._weigh(rays, levelled, level))
+                if self.converged and self._state_calibration():
+                    self.calibrator.weighted(self.weights)
                 if (
                     self.converged
                     and self.refiner is not None
@@ -497,6 +503,9 @@ class MonteCarloLocalizer:
     def _move(self) -> None:
         increment = odometry_increment(np.zeros(3), self.pending)
         self._moved_m = float(math.hypot(self.pending[0], self.pending[1]))
+        if self._state_calibration() and self.calibrator.state is not None:
+            increment = self.calibrator.increments(increment, self._dt_pending, self._moved_m, self.rng)
+        self._dt_pending = 0.0
         self._motion = self.pending.copy()  # this update's odometry, in the previous update's pose
         self.particles = sample_motion(self.particles, increment, self.noise, self.rng)
         self.last_estimate = se2_compose(self.last_estimate, self.pending)
@@ -546,9 +555,7 @@ class MonteCarloLocalizer:
                 out.update(self._search_update(w, levelled))
             elif self._tiles_converged():
                 self._resample(w, min(self.converged_count, n))
-                self.converged = True
-                self._since_search = 0
-                self._start_probation()
+                self._converge(search=True)
                 out.update(resampled=True, converged_now=True)
             elif effective_sample_size(w) < self.resample_neff_ratio * n:
                 self._resample(w, n)
@@ -587,11 +594,9 @@ class MonteCarloLocalizer:
             wi = w[inside] / w[inside].sum()
             self.particles = self.particles[inside]
             self._resample(wi, self.converged_count)
-            self.converged = True
-            self._since_search = 0
+            self._converge(search=True)
             self._leader = None
             self.last_estimate = pose_estimate(self.particles, self.weights, self.estimate_best_share)
-            self._start_probation()
             out["converged_now"] = True
             return out
         keep = [h for h in hyps if h.log_share >= best.log_share - self.prune_nats][: self.max_clusters]
@@ -625,8 +630,22 @@ class MonteCarloLocalizer:
         self.particles, self.log_w, self._leader = parts, logw, leader
         return out
 
+    def _state_calibration(self) -> bool:
+        return isinstance(self.calibrator, ParticleCalibration)
+
+    def _converge(self, search: bool) -> None:
+        """The cloud has converged (a search's decision, or a tracking start when ``search`` is False)."""
+        self.converged = True
+        if search:
+            self._since_search = 0
+            self._start_probation()
+        if self._state_calibration():
+            self.calibrator.start(len(self.particles), self.rng)
+
     def _resample(self, w: np.ndarray, n: int) -> None:
         idx = low_variance_resample(w, self.rng, n)
+        if self.converged and self._state_calibration():
+            self.calibrator.resampled(idx)
         parts = self.particles[idx].copy()
         sxy, syaw = self.jitter if self.converged else self.global_jitter
         if sxy > 0 or syaw > 0:

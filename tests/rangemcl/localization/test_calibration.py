@@ -127,13 +127,18 @@ def _scan(caster, geo, pose):
     return (d[hits.hit] * hits.ranges[hits.hit, None]).astype(np.float32)
 
 
-def _track(corridor, calibrate: bool):
+def _track(corridor, calibrate: bool, mode: str = "estimator", refine: bool | None = None, noise=None):
     caster, m = corridor
     geo = RangeImageGeometry.for_spec(load_spec("vlp-16").with_columns(720))
     s = LocalizerSettings()
     s.observation = ObservationSettings(rays=300, max_range_m=40.0)
     s.motion.calibrate_scale = s.motion.calibrate_gyro_bias = s.refine.enabled = calibrate
+    if refine is not None:
+        s.refine.enabled = refine
+    if noise is not None:
+        s.motion.trans_per_trans = noise
     s.refine.min_hit_height_m = None  # nothing changes between this map and its scans: every hit counts
+    s.motion.calibration = mode
     loc = build_localizer(m, s, seed=2, caster=caster)
     n = 220
     path = np.column_stack([np.arange(n) * 0.8, np.zeros(n), np.zeros(n)])  # 8 m/s, 175 m
@@ -156,3 +161,15 @@ def test_a_three_percent_wheel_error_is_calibrated_away_in_a_corridor(corridor):
     loc0, along0 = _track(corridor, calibrate=False)
     assert loc0.calibrator.scale == 1.0 and loc0.refinements == 0
     assert np.abs(along0[-50:]).mean() > 3 * np.abs(along[-50:]).mean()
+
+
+def test_scale_as_particle_state_is_learned_only_without_the_refinement(corridor):
+    """The alternative of issue 19 (``motion.calibration: particles``): each particle carries its own scale
+    and the weighting selects. With motion noise below the wheel's error (1 % of the distance) and no
+    refinement it learns the 3 % error; with the refinement, which moves the whole cloud onto the scan
+    at every update, the particles' positions no longer carry their scale's effect and the selection is
+    lost (README: the slow estimator is the default for this reason)."""
+    loc, _ = _track(corridor, True, mode="particles", refine=False, noise=0.01)
+    assert loc.calibrator.scale == pytest.approx(1 / 0.97, rel=0.005)
+    loc, _ = _track(corridor, True, mode="particles", refine=True, noise=0.01)
+    assert abs(loc.calibrator.scale - 1 / 0.97) > 0.005
