@@ -381,6 +381,28 @@ def map_info(map_dir: Path = typer.Argument(..., help="A map folder.")) -> None:
         typer.echo(f"{key:<{width}}  {value}")
 
 
+@app.command("map-upgrade")
+def map_upgrade(map_dir: Path = typer.Argument(..., help="A map folder.")) -> None:
+    """Rewrite a map folder of format 1 (mesh.ply + tiles.npz, before issue 17) as format 2 (a mesh file per
+    tile and an index), in place. The tiles and the index are written first and map.yaml last: a run
+    stopped part-way leaves the format-1 map as it was, and running it again finishes."""
+    from rangemcl.mapping.meshmap import MeshMap
+    from rangemcl.mapping.store import TileStore
+
+    m = MeshMap.load(map_dir)
+    if m.format_version >= 2:
+        for name in ("mesh.ply", "tiles.npz"):  # left by a run stopped after map.yaml
+            (map_dir / name).unlink(missing_ok=True)
+        typer.echo(f"{map_dir}: already format {m.format_version}")
+        return
+    m.save(map_dir)
+    store = TileStore.open(map_dir)
+    typer.echo(
+        f"{map_dir}: format 2, {store.n_triangles:,} triangles in {len(store.entries)} tile files, "
+        f"{store.bytes_on_disk / 1e6:.1f} MB"
+    )
+
+
 @app.command("map-quality")
 def map_quality_cmd(
     map_dir: Path = typer.Argument(..., help="A map folder."),

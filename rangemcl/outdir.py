@@ -22,7 +22,7 @@ from pathlib import Path
 
 from rangemcl.errors import InputError
 
-MAP_MARKERS = ("map.yaml", "mesh.ply", "tiles.npz")  # a map folder (build-map, import-mesh)
+MAP_MARKERS = ("map.yaml", "tiles.json", "mesh.ply", "tiles.npz")  # a map folder (formats 2 and 1)
 RESULT_MARKERS = ("frames.csv", "summary.json", "config.yaml", "estimate_kitti.txt")  # localize's results
 
 

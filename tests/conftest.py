@@ -35,3 +35,70 @@ def small_town_map(tmp_path_factory):
     s.scans.every_nth = 2
     build_map(root / "map_run", root / "map", s)
     return root, root / "map"
+
+
+def _write_map_v1(m, map_dir) -> None:
+    """A map folder of format 1, as rangemcl wrote them before issue 17 (the whole mesh in a binary PLY
+    with ground labels as vertex colours, the tiling in tiles.npz): the fixture for "maps written by
+    today's builder keep loading". A copy of that writer, kept here since the library writes format 2."""
+    from pathlib import Path
+
+    import numpy as np
+    import yaml
+
+    from rangemcl.atomic import savez_stable
+    from rangemcl.mapping.meshmap import GROUND_RGB, NON_GROUND_RGB, _plain
+
+    d = Path(map_dir)
+    d.mkdir(parents=True, exist_ok=True)
+    colours = np.where(m.is_ground[:, None], GROUND_RGB, NON_GROUND_RGB).astype(np.uint8)
+    head = (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"element vertex {len(m.vertices)}\nproperty double x\nproperty double y\nproperty double z\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\n"
+        f"element face {len(m.faces)}\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+    vrec = np.empty(len(m.vertices), [("p", "<f8", 3), ("c", "u1", 3)])
+    vrec["p"], vrec["c"] = m.vertices, colours
+    frec = np.empty(len(m.faces), [("n", "u1"), ("i", "<i4", 3)])
+    frec["n"], frec["i"] = 3, m.faces
+    (d / "mesh.ply").write_bytes(head.encode() + vrec.tobytes() + frec.tobytes())
+    with (d / "tiles.npz").open("wb") as fh:
+        savez_stable(
+            fh,
+            tile_size_m=np.float64(m.tile_size_m),
+            tile_origin_xy=m.tile_origin_xy,
+            tiles=m.tiles,
+            face_tile=m.face_tile,
+        )
+    with (d / "ground.npz").open("wb") as fh:
+        savez_stable(
+            fh, origin_xy=m.ground.origin_xy, cell_m=np.float64(m.ground.cell_m), heights=m.ground.heights
+        )
+    files = {"mesh": "mesh.ply", "tiles": "tiles.npz", "ground": "ground.npz"}
+    if m.drive_xy is not None:
+        with (d / "drive.npz").open("wb") as fh:
+            savez_stable(fh, xy=m.drive_xy)
+        files["drive"] = "drive.npz"
+    doc = {
+        "format": "rangemcl-mesh-map",
+        "format_version": 1,
+        "files": files,
+        "counts": {
+            "vertices": len(m.vertices),
+            "triangles": len(m.faces),
+            "ground_vertices": int(m.is_ground.sum()),
+            "tiles": len(m.tiles),
+        },
+        "tile_size_m": float(m.tile_size_m),
+        "ground_cell_m": float(m.ground.cell_m),
+        "extent_m": [float(x) for x in m.extent],
+        "meta": _plain(m.meta),
+    }
+    (d / "map.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+
+
+@pytest.fixture
+def save_v1():
+    """``save_v1(mesh_map, folder)``: write a map folder of format 1 (see :func:`_write_map_v1`)."""
+    return _write_map_v1

@@ -205,15 +205,18 @@ def surface_voxels(
 def cached_surface_voxels(mesh_map, voxel_m: float, seed: int = 0) -> np.ndarray:
     """:func:`surface_voxels` of a map, kept in a cache file when the map was loaded from a folder (a
     town-sized map takes minutes): ``$RANGEMCL_CACHE_DIR``, else ``$XDG_CACHE_HOME/rangemcl``, else
-    ``~/.cache/rangemcl``; keyed by the map's mesh file (path, size, modification time) and the settings."""
+    ``~/.cache/rangemcl``; keyed by the map's tile index or mesh file (path, size, modification time) and
+    the settings."""
     import hashlib
     import os
 
     from rangemcl.atomic import atomic_write
 
     src = getattr(mesh_map, "source_dir", None)
-    mesh = None if src is None else Path(src) / "mesh.ply"
-    if mesh is None or not mesh.is_file():
+    mesh = None  # the file that changes whenever the mesh does: the tile index (format 2) or mesh.ply (1)
+    if src is not None:
+        mesh = next((Path(src) / n for n in ("tiles.json", "mesh.ply") if (Path(src) / n).is_file()), None)
+    if mesh is None:
         return surface_voxels(mesh_map.vertices, mesh_map.faces, voxel_m, seed=seed)
     st = mesh.stat()
     key = f"{mesh.resolve()}|{st.st_size}|{st.st_mtime_ns}|{voxel_m!r}|{seed}|v2"

@@ -273,12 +273,11 @@ class PlacePrior:
 
 
 def prior_key(mesh_map, cells_xy: np.ndarray, params: PriorParams) -> str:
-    """What a stored prior must match: the map's mesh (size, triangle count, extent), the cells, the
-    parameters."""
+    """What a stored prior must match: the map's mesh (triangle count, extent; not the vertex count, which
+    ``rangemcl map-upgrade`` changes: a tile file holds the vertices its faces use, so border vertices
+    are in two files), the cells, the parameters."""
     h = hashlib.sha1()
-    h.update(
-        repr((len(mesh_map.vertices), len(mesh_map.faces), tuple(np.round(mesh_map.extent, 3)))).encode()
-    )
+    h.update(repr((len(mesh_map.faces), tuple(np.round(mesh_map.extent, 3)))).encode())
     h.update(np.ascontiguousarray(np.round(cells_xy, 3)).tobytes())
     h.update(repr(asdict(params)).encode())
     return h.hexdigest()[:20]

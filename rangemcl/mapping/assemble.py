@@ -1,7 +1,7 @@
 """Write a map folder from per-tile meshes without ever holding the whole map in memory.
 
 ``rangemcl build-map`` meshes each tile in its own job and leaves one ``.npz`` per tile (vertices, faces,
-is_ground) in its work folder. :func:`assemble_map` turns those into the map folder that
+is_ground) in its work folder. :func:`assemble_map` turns those into the map folder (format 2) that
 :meth:`MeshMap.load` reads, with exactly the content :meth:`MeshMap.from_mesh` followed by
 :meth:`MeshMap.save` gives for the tiles' meshes concatenated in order, while holding one tile's mesh
 at a time:
@@ -12,37 +12,31 @@ at a time:
    file of the tile that owns its ground-grid cell;
 3. the ground grid, one owner tile at a time (per-cell medians of the ground vertices, as
    :meth:`GroundGrid.from_vertices` computes them);
-4. ``mesh.ply`` streamed: the header with the totals, vertex records tile by tile, then face records
-   (indices offset by the vertices before) from a spool file; ``tiles.npz`` with ``face_tile`` streamed
-   from a memory-mapped file; ``ground.npz``, ``drive.npz``, ``map.yaml`` last.
+4. the map's tile files (:mod:`rangemcl.mapping.store`), one map tile at a time from its spooled parts,
+   then ``tiles.json``, ``ground.npz``, ``drive.npz`` and ``map.yaml`` last.
 
 So the builder's peak memory follows the largest tile, not the map's area. What does grow with the area:
-the ground grid (4 bytes per cell, capped at ``MAX_GROUND_CELLS``) and ``face_tile`` on disk.
+the ground grid (4 bytes per cell, capped at ``MAX_GROUND_CELLS``) and the index (a line per tile).
 """
 
 from __future__ import annotations
 
 import shutil
-import zipfile
 from pathlib import Path
 
 import numpy as np
 
-from rangemcl.atomic import atomic_write, savez_stable
 from rangemcl.errors import InputError
 from rangemcl.mapping.meshmap import (
-    GROUND_RGB,
-    NON_GROUND_RGB,
+    GroundGrid,
     _tile_ij,
     _tile_keys,
     face_tile_ij,
     fill_cell_medians,
     ground_grid_layout,
-    map_yaml_text,
-    ply_face_bytes,
-    ply_vertex_bytes,
-    write_ply_header,
+    write_map_files,
 )
+from rangemcl.mapping.store import write_index, write_tile
 from rangemcl.pool import kill_point
 
 
@@ -61,13 +55,6 @@ def _load_tile(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if not np.isfinite(v).all():
         raise InputError(f"{path}: tile mesh has NaN or infinite vertices")
     return v, f, g
-
-
-def _member(name: str):
-    """A zip member with a fixed timestamp (``zipfile`` stamps members with the current time)."""
-    info = zipfile.ZipInfo(name, date_time=(1980, 1, 1, 0, 0, 0))
-    info.external_attr = 0o644 << 16
-    return info
 
 
 def assemble_map(
@@ -107,21 +94,25 @@ def assemble_map(
     origin = np.floor(lo[:2] / tile_size_m) * tile_size_m
     g_origin, g_cell, (gnx, gny) = ground_grid_layout(lo[:2], hi[:2], ground_cell_m)
 
-    # 2. face tiles (as keys, memory-mapped) and ground vertices spooled by the tile owning their cell
+    # 2. each build tile's faces spooled by the map tile holding their centroid (with the vertices they use,
+    #    in the build tile's order), and ground vertices by the tile owning their ground-grid cell
     spool = work / "assemble"
     shutil.rmtree(spool, ignore_errors=True)
     spool.mkdir()
-    face_keys = np.lib.format.open_memmap(spool / "face_keys.npy", mode="w+", dtype=np.int64, shape=(n_f,))
-    tile_keys: set[int] = set()
+    mesh_parts: dict[int, list[Path]] = {}
     ground_parts: dict[int, list[Path]] = {}
-    pos = 0
     for n, path in enumerate(used):
         v, f, g = _load_tile(path)
         ij = face_tile_ij(v, f, origin, tile_size_m)
         keys = _tile_keys(ij[:, 0], ij[:, 1])
-        face_keys[pos : pos + len(f)] = keys
-        pos += len(f)
-        tile_keys.update(np.unique(keys).tolist())
+        for key in np.unique(keys):
+            fk = f[keys == key]
+            verts, inverse = np.unique(fk, return_inverse=True)
+            part = spool / f"mesh_{key}_{n}.npz"
+            np.savez(
+                part, vertices=v[verts], faces=inverse.reshape(-1, 3).astype(np.int32), is_ground=g[verts]
+            )
+            mesh_parts.setdefault(int(key), []).append(part)
         pg = v[g]
         if len(pg):
             cell = np.clip(np.floor((pg[:, :2] - g_origin) / g_cell).astype(np.int64), 0, [gnx - 1, gny - 1])
@@ -130,70 +121,37 @@ def assemble_map(
                 part = spool / f"ground_{n}_{key}.npy"  # tile n's ground vertices in key's cells
                 np.save(part, pg[owner == key])
                 ground_parts.setdefault(int(key), []).append(part)
-    face_keys.flush()
-    keys_sorted = np.array(sorted(tile_keys), np.int64)
 
     # 3. ground grid, one owner tile at a time (a cell's vertices all go to one owner)
     heights = np.full((gny, gnx), np.nan, np.float32)
     for parts in ground_parts.values():
         fill_cell_medians(heights, np.concatenate([np.load(p) for p in parts]), g_origin, g_cell)
 
-    # 4. mesh.ply and tiles.npz, streamed
-    face_tile = np.lib.format.open_memmap(spool / "face_tile.npy", mode="w+", dtype=np.int32, shape=(n_f,))
-    chunk = 1 << 22
-    for start in range(0, n_f, chunk):
-        face_tile[start : start + chunk] = np.searchsorted(keys_sorted, face_keys[start : start + chunk])
-    face_tile.flush()
-    del face_tile, face_keys
-
-    faces_spool = spool / "faces.bin"
-
-    def write_mesh(fh) -> None:
-        write_ply_header(fh, n_v, n_f, colours=True)
-        offset = 0
-        with faces_spool.open("wb") as ff:
-            for path in used:
-                v, f, g = _load_tile(path)
-                colours = np.where(g[:, None], GROUND_RGB, NON_GROUND_RGB).astype(np.uint8)
-                fh.write(ply_vertex_bytes(v, colours))
-                ff.write(ply_face_bytes(f + offset))
-                offset += len(v)
-        with faces_spool.open("rb") as ff:
-            shutil.copyfileobj(ff, fh, 1 << 24)
-
+    # 4. the map's tiles, one at a time (its parts in build order: the vertex and face order of the whole
+    #    map's tile), the index, then ground, drive and map.yaml
     out_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write(out_dir / "mesh.ply", write_mesh)
-    kill_point("assemble")  # tests: killed with the map folder half written
-    faces_spool.unlink()
-
-    def write_tiles(fh) -> None:
-        with zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
-            for name, value in (
-                ("tile_size_m", np.float64(tile_size_m)),
-                ("tile_origin_xy", origin),
-                ("tiles", _tile_ij(keys_sorted).astype(np.int32)),
-            ):
-                with zf.open(_member(f"{name}.npy"), "w", force_zip64=True) as entry:
-                    np.lib.format.write_array(entry, np.asanyarray(value))
-            # fixed timestamps: the same map gives the same bytes
-            with (
-                (spool / "face_tile.npy").open("rb") as src,
-                zf.open(_member("face_tile.npy"), "w", force_zip64=True) as entry,
-            ):
-                shutil.copyfileobj(src, entry, 1 << 20)
-
-    atomic_write(out_dir / "tiles.npz", write_tiles)
-    atomic_write(
-        out_dir / "ground.npz",
-        lambda fh: savez_stable(fh, origin_xy=g_origin, cell_m=np.float64(g_cell), heights=heights),
+    entries = []
+    for key in sorted(mesh_parts):
+        vs, fs, gs = [], [], []
+        offset = 0
+        for part in mesh_parts[key]:
+            with np.load(part) as z:
+                vs.append(z["vertices"])
+                fs.append(z["faces"] + np.int32(offset))
+                gs.append(z["is_ground"])
+            offset += len(vs[-1])
+            part.unlink()
+        ij = _tile_ij(np.array([key]))[0]
+        entries.append(write_tile(out_dir, ij, np.concatenate(vs), np.concatenate(fs), np.concatenate(gs)))
+        kill_point("assemble")  # tests: killed with the map folder half written
+    write_index(out_dir, tile_size_m, origin, entries)
+    counts = write_map_files(
+        out_dir,
+        entries,
+        ground=GroundGrid(g_origin, g_cell, heights),
+        drive_xy=drive_xy,
+        tile_size_m=tile_size_m,
+        meta=meta or {},
     )
-    files = {"mesh": "mesh.ply", "tiles": "tiles.npz", "ground": "ground.npz"}
-    if drive_xy is not None:
-        atomic_write(out_dir / "drive.npz", lambda fh: savez_stable(fh, xy=np.asarray(drive_xy, np.float64)))
-        files["drive"] = "drive.npz"
-    counts = {"vertices": n_v, "triangles": n_f, "ground_vertices": n_g, "tiles": len(keys_sorted)}
-    extent = (*lo.tolist(), *hi.tolist())
-    text = map_yaml_text(files, counts, tile_size_m, g_cell, extent, meta or {})
-    atomic_write(out_dir / "map.yaml", lambda fh: fh.write(text.encode()))
     shutil.rmtree(spool, ignore_errors=True)
     return counts

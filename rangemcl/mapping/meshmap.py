@@ -1,7 +1,10 @@
 """The mesh map the localizer renders from: a triangle mesh in the world frame, its ground labels, a tiling
 and a ground-height grid, and the map folder they live in.
 
-A map folder holds::
+A map folder of format 2 (written by :meth:`MeshMap.save` and ``rangemcl build-map``) holds one mesh file
+per tile and an index, ``tiles/I_J.npz`` and ``tiles.json`` (:mod:`rangemcl.mapping.store`), with
+``ground.npz``, ``drive.npz`` and ``map.yaml`` as below. A folder of format 1 (written before issue 17;
+still read, and rewritten as format 2 by ``rangemcl map-upgrade``) holds the whole mesh::
 
     mesh.ply     binary little-endian PLY: float64 x, y, z and uchar red, green, blue per vertex (ground
                  (128, 128, 128), everything else (200, 120, 60)); int32 triangle indices
@@ -43,10 +46,11 @@ from rangemcl.errors import InputError
 from rangemcl.yamlio import parse_yaml, read_text
 
 FORMAT_NAME = "rangemcl-mesh-map"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # tiles/ + tiles.json (rangemcl.mapping.store); 1: mesh.ply + tiles.npz, still read
 GROUND_RGB = (128, 128, 128)
 NON_GROUND_RGB = (200, 120, 60)
-MAP_FILES = ("mesh.ply", "tiles.npz", "ground.npz", "map.yaml")
+MAP_FILES = ("tiles.json", "ground.npz", "map.yaml")  # format 2 (and its tiles/ folder)
+MAP_FILES_V1 = ("mesh.ply", "tiles.npz", "ground.npz", "map.yaml")
 
 # Grids with more cells than this are coarsened (4 bytes a cell: 100 MB), e.g. a ground grid for a
 # mesh with a stray vertex kilometres away.
@@ -211,6 +215,7 @@ class MeshMap:
     meta: dict = field(default_factory=dict)
     drive_xy: np.ndarray | None = field(default=None, repr=False)  # (K, 2) the mapping drive, if known
     source_dir: Path | None = field(default=None, repr=False)  # the folder it was loaded from
+    format_version: int = field(default=FORMAT_VERSION, repr=False)  # of that folder
 
     def __post_init__(self) -> None:
         self.vertices = np.asarray(self.vertices, np.float64)
@@ -329,81 +334,73 @@ class MeshMap:
     # --- disk -------------------------------------------------------------------------------------------
 
     def save(self, map_dir) -> Path:
-        """Write the map folder (created if needed); each file atomically, ``map.yaml`` last."""
+        """Write the map folder (format 2, created if needed): each tile's mesh file, the index, the ground
+        grid and the drive, each atomically, ``map.yaml`` last; then files of an older map there (format
+        1's ``mesh.ply`` and ``tiles.npz``, tiles no longer listed) are removed."""
+        from rangemcl.mapping.store import write_index, write_tile
+
         map_dir = Path(map_dir)
         try:
             map_dir.mkdir(parents=True, exist_ok=True)
         except OSError as err:
             raise InputError(f"cannot write map folder {map_dir}: {err.strerror or err}") from None
-        colours = np.where(self.is_ground[:, None], GROUND_RGB, NON_GROUND_RGB).astype(np.uint8)
-        atomic_write(
-            map_dir / "mesh.ply", lambda fh: write_ply_binary(fh, self.vertices, self.faces, colours)
+        entries = []
+        for k in range(len(self.tiles)):
+            v, f = self.submesh([k])
+            used = np.unique(self.faces[self.tile_faces([k])])
+            entries.append(write_tile(map_dir, self.tiles[k], v, f, self.is_ground[used]))
+        write_index(map_dir, self.tile_size_m, self.tile_origin_xy, entries)
+        write_map_files(
+            map_dir,
+            entries,
+            ground=self.ground,
+            drive_xy=self.drive_xy,
+            tile_size_m=self.tile_size_m,
+            meta=self.meta,
         )
-        atomic_write(
-            map_dir / "tiles.npz",
-            lambda fh: savez_stable(
-                fh,
-                tile_size_m=np.float64(self.tile_size_m),
-                tile_origin_xy=self.tile_origin_xy,
-                tiles=self.tiles,
-                face_tile=self.face_tile,
-            ),
-        )
-        atomic_write(
-            map_dir / "ground.npz",
-            lambda fh: savez_stable(
-                fh,
-                origin_xy=self.ground.origin_xy,
-                cell_m=np.float64(self.ground.cell_m),
-                heights=self.ground.heights,
-            ),
-        )
-        files = {"mesh": "mesh.ply", "tiles": "tiles.npz", "ground": "ground.npz"}
-        if self.drive_xy is not None:
-            atomic_write(map_dir / "drive.npz", lambda fh: savez_stable(fh, xy=self.drive_xy))
-            files["drive"] = "drive.npz"
-        counts = {
-            "vertices": self.n_vertices,
-            "triangles": self.n_triangles,
-            "ground_vertices": int(self.is_ground.sum()),
-            "tiles": len(self.tiles),
-        }
-        text = map_yaml_text(files, counts, self.tile_size_m, self.ground.cell_m, self.extent, self.meta)
-        atomic_write(map_dir / "map.yaml", lambda fh: fh.write(text.encode()))
         return map_dir
 
     @classmethod
     def load(cls, map_dir) -> MeshMap:
-        """Read a map folder written by :meth:`save`; any problem is an InputError naming the file."""
+        """Read a map folder written by :meth:`save` (format 2) or by the builders before issue 17
+        (format 1); any problem is an InputError naming the file."""
         map_dir = Path(map_dir)
-        if not map_dir.exists():
-            raise InputError(f"{map_dir}: map folder does not exist")
-        if not map_dir.is_dir():
-            raise InputError(f"{map_dir}: not a folder (expected a map folder)")
-        for name in MAP_FILES:
-            if not (map_dir / name).is_file():
-                raise InputError(f"{map_dir / name}: missing (is {map_dir} a map folder?)")
+        version, doc = read_map_yaml(map_dir)
+        counts, meta = doc["counts"], doc["meta"]
+        if version == 1:
+            return cls._load_v1(map_dir, counts, meta)
+        from rangemcl.mapping.store import INDEX_NAME, TileStore
 
-        ypath = map_dir / "map.yaml"
-        doc = parse_yaml(read_text(ypath), str(ypath))
-        if not isinstance(doc, dict):
-            raise InputError(f"{ypath}: expected a mapping at the top level")
-        version = doc.get("format_version")
-        if version != FORMAT_VERSION or isinstance(version, bool):
-            raise InputError(
-                f"{ypath}: format_version {version!r} is not supported (expected {FORMAT_VERSION})"
-            )
-        counts = doc.get("counts")
-        if not isinstance(counts, dict) or not all(
-            isinstance(counts.get(k), int) for k in ("vertices", "triangles", "ground_vertices", "tiles")
+        store = TileStore.open(map_dir)
+        ipath = map_dir / INDEX_NAME
+        for what, found, key in (
+            ("tiles", len(store.entries), "tiles"),
+            ("vertices", store.n_vertices, "vertices"),
+            ("triangles", store.n_triangles, "triangles"),
+            ("ground vertices", sum(e.ground_vertices for e in store.entries), "ground_vertices"),
         ):
-            raise InputError(
-                f"{ypath}: 'counts' must map vertices, triangles, ground_vertices, tiles to integers"
-            )
-        meta = doc.get("meta") or {}
-        if not isinstance(meta, dict):
-            raise InputError(f"{ypath}: 'meta' must be a mapping")
+            if found != counts[key]:
+                raise InputError(f"{ipath}: lists {found} {what} but map.yaml says {counts[key]}")
+        v, f, g, face_tile = store.read_all()
+        ground, drive = _read_ground_and_drive(map_dir)
+        return cls(
+            vertices=v,
+            faces=f,
+            is_ground=g,
+            tile_size_m=store.tile_size_m,
+            tile_origin_xy=store.origin_xy,
+            face_tile=face_tile,
+            tiles=store.tiles,
+            ground=ground,
+            meta=meta,
+            drive_xy=drive,
+            source_dir=map_dir,
+        )
 
+    @classmethod
+    def _load_v1(cls, map_dir: Path, counts: dict, meta: dict) -> MeshMap:
+        """A format-1 folder: the whole mesh in ``mesh.ply``, the tiling in ``tiles.npz``."""
+        ypath = map_dir / "map.yaml"
         ppath = map_dir / "mesh.ply"
         vertices, faces, colours = read_ply_binary(ppath)
         if colours is None:
@@ -441,20 +438,7 @@ class MeshMap:
         if not _tiling_matches(t["tiles"], face_tile, v, f, origin, tile_size):
             raise InputError(f"{tpath}: the tiling does not match the faces' centroids in mesh.ply")
 
-        gpath = map_dir / "ground.npz"
-        gz = _read_npz(gpath, {"origin_xy": (2,), "cell_m": (), "heights": (-1, -1)})
-        try:
-            ground = GroundGrid(gz["origin_xy"], float(gz["cell_m"]), gz["heights"])
-        except ValueError as err:
-            raise InputError(f"{gpath}: {err}") from None
-
-        drive = None
-        dpath = map_dir / "drive.npz"
-        if dpath.is_file():
-            drive = _read_npz(dpath, {"xy": (-1, 2)})["xy"].astype(np.float64)
-            if not np.isfinite(drive).all():
-                raise InputError(f"{dpath}: xy holds non-finite values")
-
+        ground, drive = _read_ground_and_drive(map_dir)
         return cls(
             vertices=v,
             faces=f,
@@ -467,7 +451,99 @@ class MeshMap:
             meta=meta,
             drive_xy=drive,
             source_dir=map_dir,
+            format_version=1,
         )
+
+
+def read_map_yaml(map_dir: Path) -> tuple[int, dict]:
+    """``(format_version, document)`` of a map folder's ``map.yaml`` after checking that the folder and the
+    files of its format are there; ``document["counts"]`` and ``document["meta"]`` are checked mappings."""
+    if not map_dir.exists():
+        raise InputError(f"{map_dir}: map folder does not exist")
+    if not map_dir.is_dir():
+        raise InputError(f"{map_dir}: not a folder (expected a map folder)")
+    ypath = map_dir / "map.yaml"
+    if not ypath.is_file():
+        raise InputError(f"{ypath}: missing (is {map_dir} a map folder?)")
+    doc = parse_yaml(read_text(ypath), str(ypath))
+    if not isinstance(doc, dict):
+        raise InputError(f"{ypath}: expected a mapping at the top level")
+    version = doc.get("format_version")
+    if version not in (1, FORMAT_VERSION) or isinstance(version, bool):
+        raise InputError(
+            f"{ypath}: format_version {version!r} is not supported (expected 1 or {FORMAT_VERSION})"
+        )
+    for name in MAP_FILES_V1 if version == 1 else MAP_FILES:
+        if not (map_dir / name).is_file():
+            raise InputError(f"{map_dir / name}: missing (is {map_dir} a map folder?)")
+    counts = doc.get("counts")
+    if not isinstance(counts, dict) or not all(
+        isinstance(counts.get(k), int) for k in ("vertices", "triangles", "ground_vertices", "tiles")
+    ):
+        raise InputError(
+            f"{ypath}: 'counts' must map vertices, triangles, ground_vertices, tiles to integers"
+        )
+    meta = doc.get("meta") or {}
+    if not isinstance(meta, dict):
+        raise InputError(f"{ypath}: 'meta' must be a mapping")
+    doc["meta"] = meta
+    return int(version), doc
+
+
+def _read_ground_and_drive(map_dir: Path) -> tuple[GroundGrid, np.ndarray | None]:
+    gpath = map_dir / "ground.npz"
+    gz = _read_npz(gpath, {"origin_xy": (2,), "cell_m": (), "heights": (-1, -1)})
+    try:
+        ground = GroundGrid(gz["origin_xy"], float(gz["cell_m"]), gz["heights"])
+    except ValueError as err:
+        raise InputError(f"{gpath}: {err}") from None
+    drive = None
+    dpath = map_dir / "drive.npz"
+    if dpath.is_file():
+        drive = _read_npz(dpath, {"xy": (-1, 2)})["xy"].astype(np.float64)
+        if not np.isfinite(drive).all():
+            raise InputError(f"{dpath}: xy holds non-finite values")
+    return ground, drive
+
+
+def write_map_files(
+    map_dir: Path, entries, *, ground: GroundGrid, drive_xy, tile_size_m: float, meta: dict
+) -> dict:
+    """After the tiles and ``tiles.json``: ``ground.npz``, ``drive.npz`` and ``map.yaml`` (last, format 2),
+    then the files of an older map in the folder are removed. Returns the counts written."""
+    from rangemcl.mapping.store import INDEX_NAME, TILE_DIR
+
+    atomic_write(
+        map_dir / "ground.npz",
+        lambda fh: savez_stable(
+            fh, origin_xy=ground.origin_xy, cell_m=np.float64(ground.cell_m), heights=ground.heights
+        ),
+    )
+    files = {"index": INDEX_NAME, "tiles": f"{TILE_DIR}/", "ground": "ground.npz"}
+    if drive_xy is not None:
+        atomic_write(map_dir / "drive.npz", lambda fh: savez_stable(fh, xy=np.asarray(drive_xy, np.float64)))
+        files["drive"] = "drive.npz"
+    counts = {
+        "vertices": sum(e.vertices for e in entries),
+        "triangles": sum(e.triangles for e in entries),
+        "ground_vertices": sum(e.ground_vertices for e in entries),
+        "tiles": len(entries),
+    }
+    b = np.array([e.bounds for e in entries])
+    extent = (*b[:, :3].min(axis=0).tolist(), *b[:, 3:].max(axis=0).tolist())
+    text = map_yaml_text(files, counts, tile_size_m, ground.cell_m, extent, meta)
+    from rangemcl.pool import kill_point
+
+    kill_point("map-files")  # tests: killed with every file but map.yaml written
+    atomic_write(map_dir / "map.yaml", lambda fh: fh.write(text.encode()))
+    # the map is complete: what an older map left here goes
+    for name in ("mesh.ply", "tiles.npz"):
+        (map_dir / name).unlink(missing_ok=True)
+    listed = {e.file for e in entries}
+    for path in (map_dir / TILE_DIR).glob("*.npz"):
+        if f"{TILE_DIR}/{path.name}" not in listed:
+            path.unlink(missing_ok=True)
+    return counts
 
 
 def map_yaml_text(files: dict, counts: dict, tile_size_m: float, ground_cell_m: float, extent, meta) -> str:
@@ -633,9 +709,10 @@ def map_summary(m: MeshMap) -> dict[str, Any]:
     ny, nx = g.shape
     out["ground_grid"] = f"{nx} x {ny} cells of {g.cell_m:g} m, {g.measured.mean():.0%} measured"
     if m.source_dir is not None:
-        out["bytes_on_disk"] = sum(
-            (m.source_dir / n).stat().st_size for n in MAP_FILES if (m.source_dir / n).is_file()
-        )
+        files = [m.source_dir / n for n in {*MAP_FILES, *MAP_FILES_V1, "drive.npz"}]
+        files += list((m.source_dir / "tiles").glob("*.npz"))
+        out["bytes_on_disk"] = sum(p.stat().st_size for p in files if p.is_file())
+        out["format_version"] = m.format_version
     for key in (
         "frame",
         "sensor_height_m",

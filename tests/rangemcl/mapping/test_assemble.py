@@ -1,4 +1,5 @@
-"""The streamed map assembly equals building the whole map in memory (MeshMap.from_mesh + save)."""
+"""The streamed map assembly equals building the whole map in memory (MeshMap.from_mesh + save), file for
+file (format 2: a mesh file per tile and the index)."""
 
 from __future__ import annotations
 
@@ -70,9 +71,9 @@ def test_assembled_map_equals_the_in_memory_map(tmp_path, seed):
 
     a, b = MeshMap.load(tmp_path / "streamed"), MeshMap.load(tmp_path / "ref")
     assert counts == {
-        "vertices": len(v),
+        "vertices": b.n_vertices,  # per tile: a vertex of faces in two tiles is in both tile files
         "triangles": len(f),
-        "ground_vertices": int(g.sum()),
+        "ground_vertices": int(b.is_ground.sum()),
         "tiles": len(b.tiles),
     }
     np.testing.assert_array_equal(a.vertices, b.vertices)
@@ -86,12 +87,24 @@ def test_assembled_map_equals_the_in_memory_map(tmp_path, seed):
     np.testing.assert_array_equal(a.ground.heights, b.ground.heights)  # NaN where unmeasured, in both
     np.testing.assert_array_equal(a.drive_xy, b.drive_xy)
     assert a.meta == b.meta and a.extent == b.extent
-    # each tile mesh's last face went to the tile above, the one that holds its centroid
-    last = np.cumsum([len(p[1]) for p in parts]) - 1
-    corner = a.tile_origin_xy + 20.0 * a.tiles[a.face_tile[last]]
-    np.testing.assert_allclose(corner, 20.0 * (np.array(tiles) + np.array([0, 1])))
-    for name in ("map.yaml", "mesh.ply"):  # the .npz zips differ in headers only: compared above
-        assert (tmp_path / "streamed" / name).read_bytes() == (tmp_path / "ref" / name).read_bytes()
+    # the same triangles as the whole mesh, each in the tile of its centroid
+    tri = lambda m: np.sort(m.vertices[m.faces].reshape(len(m.faces), -1), axis=0)  # noqa: E731
+    np.testing.assert_array_equal(tri(a), np.sort(v[f].reshape(len(f), -1), axis=0))
+    # each tile mesh's last triangle went to the tile above, the one that holds its centroid
+    for (i, j), (pv, pf, _g) in zip(tiles, parts, strict=True):
+        corners = pv[pf[-1]]
+        k = np.flatnonzero((a.vertices[a.faces] == corners).all(axis=(1, 2)))
+        assert len(k) == 1
+        corner = a.tile_origin_xy + 20.0 * a.tiles[a.face_tile[k[0]]]  # the tile's lower-left corner
+        np.testing.assert_allclose(corner, [20.0 * i, 20.0 * (j + 1)])
+    # every file the same bytes (the tiles are written with fixed zip timestamps)
+    names = sorted(p.relative_to(tmp_path / "ref") for p in (tmp_path / "ref").rglob("*") if p.is_file())
+    assert names == sorted(
+        p.relative_to(tmp_path / "streamed") for p in (tmp_path / "streamed").rglob("*") if p.is_file()
+    )
+    assert "tiles.json" in map(str, names) and not (tmp_path / "ref" / "mesh.ply").exists()
+    for name in names:
+        assert (tmp_path / "streamed" / name).read_bytes() == (tmp_path / "ref" / name).read_bytes(), name
 
 
 def test_assembly_of_no_triangles_is_an_error(tmp_path):

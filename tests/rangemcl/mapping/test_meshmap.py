@@ -8,6 +8,7 @@ back by trimesh and Open3D.
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -27,6 +28,7 @@ from rangemcl.mapping.meshmap import (
     map_summary,
     read_ply_binary,
 )
+from rangemcl.mapping.store import TileStore
 
 GROUND = (128, 128, 128)
 OTHER = (200, 120, 60)
@@ -223,18 +225,30 @@ def make_map(seed=0, tile=40.0):
     return MeshMap.from_mesh(v, f, is_ground, tile_size_m=tile, ground_cell_m=2.0, meta=meta)
 
 
+def _triangles(m: MeshMap) -> np.ndarray:
+    """The map's triangles as sorted rows of 9 coordinates (independent of vertex and face order)."""
+    return np.sort(m.vertices[m.faces].reshape(len(m.faces), -1), axis=0)
+
+
 def test_round_trip_is_exact(tmp_path):
     m = make_map()
     out = tmp_path / "deep" / "map"
     m.save(out)
-    assert sorted(p.name for p in out.iterdir()) == ["ground.npz", "map.yaml", "mesh.ply", "tiles.npz"]
+    assert sorted(p.name for p in out.iterdir()) == ["ground.npz", "map.yaml", "tiles", "tiles.json"]
+    assert sorted(p.name for p in (out / "tiles").iterdir()) == sorted(f"{i}_{j}.npz" for i, j in m.tiles)
     r = MeshMap.load(out)
-    np.testing.assert_array_equal(r.vertices, m.vertices)
-    np.testing.assert_array_equal(r.faces, m.faces)
-    np.testing.assert_array_equal(r.is_ground, m.is_ground)
+    # every tile's mesh is the whole map's faces of that tile with the vertices they use, bit for bit
     np.testing.assert_array_equal(r.tiles, m.tiles)
-    np.testing.assert_array_equal(r.face_tile, m.face_tile)
     np.testing.assert_array_equal(r.tile_origin_xy, m.tile_origin_xy)
+    for k in range(len(m.tiles)):
+        for a, b in zip(r.submesh([k]), m.submesh([k]), strict=True):
+            np.testing.assert_array_equal(a, b)
+        used = np.unique(m.faces[m.tile_faces([k])])
+        np.testing.assert_array_equal(r.is_ground[np.unique(r.faces[r.tile_faces([k])])], m.is_ground[used])
+        # a tile file is a plain numpy archive
+        with np.load(out / "tiles" / "{}_{}.npz".format(*m.tiles[k])) as z:
+            np.testing.assert_array_equal(z["vertices"], m.submesh([k])[0])
+    np.testing.assert_array_equal(_triangles(r), _triangles(m))
     assert r.tile_size_m == m.tile_size_m == 40.0
     np.testing.assert_array_equal(r.ground.heights, m.ground.heights)
     np.testing.assert_array_equal(r.ground.origin_xy, m.ground.origin_xy)
@@ -242,7 +256,40 @@ def test_round_trip_is_exact(tmp_path):
     assert r.meta == {**m.meta, "source": "/x/y", "n": 3}
     assert r.faces.dtype == np.int32 and r.vertices.dtype == np.float64
 
-    # the PLY is ordinary: trimesh and Open3D read the same vertices and colours
+    store = TileStore.open(out)
+    doc = yaml.safe_load((out / "map.yaml").read_text())
+    assert doc["format_version"] == 2 and r.format_version == 2
+    assert doc["counts"] == {
+        "vertices": store.n_vertices,
+        "triangles": m.n_triangles,
+        "ground_vertices": int(r.is_ground.sum()),
+        "tiles": len(m.tiles),
+    }
+    assert store.n_vertices == r.n_vertices >= len(np.unique(m.faces))  # border vertices once per tile
+
+    s = map_summary(r)
+    assert s["triangles"] == m.n_triangles and s["tiles"] == len(m.tiles) and s["tile_size_m"] == 40.0
+    assert s["bytes_on_disk"] == sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
+    assert s["frame"] == "world" and s["sensor_height_m"] == 1.73 and s["format_version"] == 2
+    assert "bytes_on_disk" not in map_summary(m)
+
+    # saving again over it gives the same bytes and leaves no temporary files
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    r.save(out)
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+
+
+def test_a_map_of_format_1_still_loads(tmp_path, save_v1):
+    """Maps written before issue 17 (the whole mesh in mesh.ply, the tiling in tiles.npz) load as they did;
+    their PLY is ordinary (trimesh and Open3D read the same vertices and colours)."""
+    m = make_map()
+    out = tmp_path / "old"
+    save_v1(m, out)
+    r = MeshMap.load(out)
+    assert r.format_version == 1 and map_summary(r)["format_version"] == 1
+    for name in ("vertices", "faces", "is_ground", "tiles", "face_tile", "tile_origin_xy"):
+        np.testing.assert_array_equal(getattr(r, name), getattr(m, name))
+    np.testing.assert_array_equal(r.ground.heights, m.ground.heights)
     t = trimesh.load(out / "mesh.ply", process=False)
     np.testing.assert_array_equal(t.vertices, m.vertices)
     np.testing.assert_array_equal(t.faces, m.faces)
@@ -252,28 +299,13 @@ def test_round_trip_is_exact(tmp_path):
 
     o = o3d.io.read_triangle_mesh(str(out / "mesh.ply"))
     np.testing.assert_array_equal(np.asarray(o.vertices), m.vertices)
-
-    doc = yaml.safe_load((out / "map.yaml").read_text())
-    assert doc["format_version"] == 1
-    assert doc["counts"] == {
-        "vertices": m.n_vertices,
-        "triangles": m.n_triangles,
-        "ground_vertices": int(m.is_ground.sum()),
-        "tiles": len(m.tiles),
-    }
-
-    s = map_summary(r)
-    assert s["triangles"] == m.n_triangles and s["tiles"] == len(m.tiles) and s["tile_size_m"] == 40.0
-    assert s["bytes_on_disk"] == sum(p.stat().st_size for p in out.iterdir())
-    assert s["frame"] == "world" and s["sensor_height_m"] == 1.73
-    assert "bytes_on_disk" not in map_summary(m)
-
-    # saving again over it works and leaves no temporary files
+    # saved again it becomes format 2, and the old files go
     r.save(out)
-    assert len(list(out.iterdir())) == 4
+    assert not (out / "mesh.ply").exists() and not (out / "tiles.npz").exists()
+    np.testing.assert_array_equal(_triangles(MeshMap.load(out)), _triangles(m))
 
 
-def test_import_obj_and_ply_with_our_colours(tmp_path):
+def test_import_obj_and_ply_with_our_colours(tmp_path, save_v1):
     v, f = grid_plane(6, 5, lambda x, y: 0.0 * x, x0=100.0)
     bv, bf = box([101.2, 1.2, 0.0], [103.8, 3.8, 3.0])
     v, f = np.vstack([v, bv]), np.vstack([f, bf + len(v)])
@@ -299,7 +331,7 @@ def test_import_obj_and_ply_with_our_colours(tmp_path):
     np.testing.assert_array_equal(import_mesh(ply).is_ground, m.is_ground)
     # our own map's mesh.ply imports with its labels
     mm = make_map(3)
-    mm.save(tmp_path / "map")
+    save_v1(mm, tmp_path / "map")
     np.testing.assert_array_equal(import_mesh(tmp_path / "map" / "mesh.ply").is_ground, mm.is_ground)
 
 
@@ -335,7 +367,13 @@ def test_from_mesh_rejects_bad_labels_and_sizes():
         MeshMap.from_mesh(v, f, ground_cell_m=float("nan"))
 
 
-def _saved(tmp_path) -> Path:
+def _saved(tmp_path, save_v1) -> Path:
+    d = tmp_path / "map"
+    save_v1(MeshMap.from_mesh(*box([0, 0, 0], [150, 30, 5]), tile_size_m=100.0), d)
+    return d
+
+
+def _saved_v2(tmp_path) -> Path:
     d = tmp_path / "map"
     MeshMap.from_mesh(*box([0, 0, 0], [150, 30, 5]), tile_size_m=100.0).save(d)
     return d
@@ -376,7 +414,7 @@ LOAD_BREAKAGES = {
         lambda d: _edit_yaml(d / "map.yaml", lambda y: y["counts"].update(vertices=9)),
         "mesh.ply",
     ),
-    "wrong version": (lambda d: _edit_yaml(d / "map.yaml", lambda y: y.update(format_version=2)), "map.yaml"),
+    "wrong version": (lambda d: _edit_yaml(d / "map.yaml", lambda y: y.update(format_version=3)), "map.yaml"),
     "malformed yaml": (lambda d: (d / "map.yaml").write_text("counts: [1, 2\n"), "map.yaml"),
     "duplicate key": (lambda d: (d / "map.yaml").write_text("a: 1\na: 2\n"), "map.yaml"),
     "broken npz": (lambda d: (d / "tiles.npz").write_bytes(b"PK\x03\x04junk"), "tiles.npz"),
@@ -390,14 +428,88 @@ LOAD_BREAKAGES = {
 
 
 @pytest.mark.parametrize("case", sorted(LOAD_BREAKAGES))
-def test_load_errors_name_the_file(tmp_path, case):
-    d = _saved(tmp_path)
+def test_load_errors_name_the_file(tmp_path, case, save_v1):
+    d = _saved(tmp_path, save_v1)
     breakage, name = LOAD_BREAKAGES[case]
     breakage(d)
     with pytest.raises(InputError) as err:
         MeshMap.load(d)
     msg = str(err.value)
     assert name in msg and "\n" not in msg, msg
+
+
+def _tile(d: Path) -> Path:
+    return sorted((d / "tiles").glob("*.npz"))[0]
+
+
+def _flip_byte(path: Path, at: int) -> None:
+    b = bytearray(path.read_bytes())
+    b[at] ^= 0xFF
+    path.write_bytes(bytes(b))
+
+
+def _edit_index(d: Path, edit) -> None:
+    doc = json.loads((d / "tiles.json").read_text())
+    edit(doc)
+    (d / "tiles.json").write_text(json.dumps(doc))
+
+
+LOAD_BREAKAGES_V2 = {
+    "missing index": (lambda d: (d / "tiles.json").unlink(), "tiles.json", "missing"),
+    "malformed index": (lambda d: (d / "tiles.json").write_text("{"), "tiles.json", "cannot read"),
+    "index of something else": (lambda d: (d / "tiles.json").write_text("[]"), "tiles.json", "not a tile"),
+    "index entry lacks a field": (
+        lambda d: _edit_index(d, lambda x: x["tiles"][0].pop("sha256")),
+        "tiles.json",
+        "malformed",
+    ),
+    "index escapes the folder": (
+        lambda d: _edit_index(d, lambda x: x["tiles"][0].update(file="../x.npz")),
+        "tiles.json",
+        "file name",
+    ),
+    "counts disagree": (
+        lambda d: _edit_yaml(d / "map.yaml", lambda y: y["counts"].update(triangles=9)),
+        "tiles.json",
+        "map.yaml says 9",
+    ),
+    "missing tile": (lambda d: _tile(d).unlink(), "tiles/", "missing"),
+    "truncated tile": (lambda d: _tile(d).write_bytes(_tile(d).read_bytes()[:-40]), "tiles/", "truncated"),
+    "damaged tile": (lambda d: _flip_byte(_tile(d), 100), "tiles/", "checksum"),
+    "wrong version": (
+        lambda d: _edit_yaml(d / "map.yaml", lambda y: y.update(format_version=7)),
+        "map.yaml",
+        "7",
+    ),
+    "missing ground": (lambda d: (d / "ground.npz").unlink(), "ground.npz", "missing"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(LOAD_BREAKAGES_V2))
+def test_load_errors_name_the_file_format_2(tmp_path, case):
+    d = _saved_v2(tmp_path)
+    breakage, name, words = LOAD_BREAKAGES_V2[case]
+    breakage(d)
+    with pytest.raises(InputError) as err:
+        MeshMap.load(d)
+    msg = str(err.value)
+    assert name in msg and words in msg and "\n" not in msg, msg
+
+
+def test_a_broken_tile_leaves_the_others_readable(tmp_path):
+    d = _saved_v2(tmp_path)
+    store = TileStore.open(d)
+    assert len(store.entries) == 2
+    (d / store.entries[0].file).write_bytes(b"PK\x03\x04 not a zip")
+    with pytest.raises(InputError, match=store.entries[0].file):
+        store.read(0)
+    _v, f, g = store.read(1)
+    assert len(f) == store.entries[1].triangles and g.dtype == bool
+    # the index alone opens a map whose tile files are all gone
+    for e in store.entries:
+        (d / e.file).unlink()
+    again = TileStore.open(d)
+    assert again.n_triangles == store.n_triangles and again.extent() == store.extent()
 
 
 def test_ascii_ply_is_for_import_only(tmp_path):
@@ -439,3 +551,58 @@ def test_import_errors_name_the_file(tmp_path):
     garbage.write_bytes(np.random.default_rng(5).integers(0, 256, 200, np.uint8).tobytes())
     with pytest.raises(InputError, match=r"g\.obj"):
         import_mesh(garbage)
+
+
+def _upgrade(d: Path, kill_at: str | None = None):
+    import subprocess
+    import sys
+
+    env = {**os.environ}
+    env.pop("RANGEMCL_KILL_AT", None)
+    if kill_at:
+        env["RANGEMCL_KILL_AT"] = kill_at
+    code = "import sys; from rangemcl.cli import main; sys.argv[0] = 'rangemcl'; main()"
+    return subprocess.run(
+        [sys.executable, "-c", code, "map-upgrade", str(d)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
+
+
+def test_map_upgrade_gives_the_same_rays_and_survives_a_kill(tmp_path, save_v1):
+    """``rangemcl map-upgrade`` rewrites a format-1 folder as format 2 in place: the same rays hit the same
+    surfaces (cast through both with the Warp caster); killed outright before map.yaml, the folder still
+    opens as the format-1 map, and a second run finishes."""
+    from rangemcl.raycast import RayCaster
+
+    m = make_map(5, tile=30.0)
+    d = tmp_path / "map"
+    save_v1(m, d)
+    killed = _upgrade(d, kill_at="map-files")
+    assert killed.returncode == -9
+    assert MeshMap.load(d).format_version == 1 and (d / "tiles.json").is_file()
+    done = _upgrade(d)
+    assert done.returncode == 0, done.stderr
+    assert "format 2" in done.stdout and "tile files" in done.stdout
+    assert not (d / "mesh.ply").exists() and not (d / "tiles.npz").exists()
+    r = MeshMap.load(d)
+    assert r.format_version == 2 and r.n_triangles == m.n_triangles
+    again = _upgrade(d)
+    assert again.returncode == 0 and "already format 2" in again.stdout
+
+    rng = np.random.default_rng(0)
+    lo, hi = np.array(m.extent[:3]), np.array(m.extent[3:])
+    origins = rng.uniform(lo, hi, (2000, 3))
+    origins[:, 2] += 1.0
+    dirs = rng.normal(size=(2000, 3)) * [1, 1, 3]
+    dirs[:, 2] = -np.abs(dirs[:, 2])
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    ranges = []
+    for mm in (m, r):
+        c = RayCaster(threads=1)
+        c.add_mesh(mm.vertices, mm.faces, name="map")
+        ranges.append(c.cast(origins, dirs, 500.0).ranges)
+    assert np.isfinite(ranges[0]).sum() > 200
+    np.testing.assert_array_equal(ranges[0], ranges[1])
