@@ -37,9 +37,8 @@ import mujoco
 import numpy as np
 
 from rangemcl import meshgen
-from rangemcl.atomic import atomic_write
+from rangemcl.atomic import _file_mode
 from rangemcl.errors import InputError
-from rangemcl.mapping.meshmap import write_ply_binary
 
 Mesh = tuple[np.ndarray, np.ndarray]
 
@@ -298,14 +297,38 @@ def split_static_dynamic(
 
 # ---------------------------------------------------------------------- files
 def write_ply(path, vertices, faces) -> Path:
-    """Write a triangle mesh as binary PLY, atomically; an unwritable path is an ``InputError`` naming it."""
+    """Write a triangle mesh as binary PLY (float64 positions, through Open3D's legacy writer, which keeps
+    them exact), atomically; an unwritable path is an ``InputError`` naming it."""
+    import os
+    import tempfile
+
+    import open3d as o3d
+
     path = Path(path)
     if not path.parent.is_dir():
         why = "is not a folder" if path.parent.exists() else "does not exist"
         raise InputError(f"cannot write {path}: {path.parent} {why}")
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces, np.int32)
-    return atomic_write(path, lambda fh: write_ply_binary(fh, v, f))
+    mesh = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(np.ascontiguousarray(vertices, np.float64).reshape(-1, 3)),
+        o3d.utility.Vector3iVector(np.ascontiguousarray(faces, np.int32).reshape(-1, 3)),
+    )
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".ply")
+    os.close(fd)
+    try:
+        ok = o3d.io.write_triangle_mesh(tmp, mesh, write_ascii=False, compressed=False)
+        if not ok:
+            raise InputError(f"cannot write {path}")
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.chmod(tmp, _file_mode())
+        os.replace(tmp, path)
+        tmp = None
+    except OSError as err:
+        raise InputError(f"cannot write {path}: {err.strerror or err}") from None
+    finally:
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
+    return path
 
 
 def export_static_mesh(model: mujoco.MjModel, path, **kw) -> Path:

@@ -121,6 +121,17 @@ def cut(n_bytes: int):
     return apply
 
 
+def flip(at: int):
+    """The file with its byte ``at`` inverted (same size: a damaged, not a truncated, file)."""
+
+    def apply(p: Path) -> None:
+        b = bytearray(p.read_bytes())
+        b[at] ^= 0xFF
+        p.write_bytes(bytes(b))
+
+    return apply
+
+
 def halve(p: Path) -> None:
     p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])
 
@@ -381,16 +392,17 @@ CASES: list[tuple[str, list[str], dict]] = [
     ("rangemcl map-info {d}/nope", ["nope", "does not exist"], {}),
     ("rangemcl map-info {d}/a_file", ["a_file", "not a folder"], {}),
     ("rangemcl map-info {d}/map", ["map.yaml", "missing"], {"map/map.yaml": None}),
-    ("rangemcl map-info {d}/map", ["mesh.ply", "missing"], {"map/mesh.ply": None}),
-    ("rangemcl map-info {d}/map", ["mesh.ply", "truncated"], {"map/mesh.ply": cut(10)}),
-    ("rangemcl map-info {d}/map", ["mesh.ply", "not a PLY file"], {"map/mesh.ply": "solid nothing\n"}),
-    ("rangemcl map-info {d}/map", ["tiles.npz", "cannot read"], {"map/tiles.npz": b"PK\x03\x04 broken"}),
+    ("rangemcl map-info {d}/map", ["tiles/0_0.npz", "missing"], {"map/tiles/0_0.npz": None}),
+    ("rangemcl map-info {d}/map", ["tiles/0_0.npz", "truncated"], {"map/tiles/0_0.npz": cut(10)}),
+    ("rangemcl map-info {d}/map", ["tiles/0_0.npz", "checksum"], {"map/tiles/0_0.npz": flip(60)}),
+    ("rangemcl map-info {d}/map", ["tiles.json", "missing"], {"map/tiles.json": None}),
+    ("rangemcl map-info {d}/map", ["tiles.json", "cannot read"], {"map/tiles.json": "{broken"}),
     ("rangemcl map-info {d}/map", ["ground.npz", "cannot read"], {"map/ground.npz": halve}),
     ("rangemcl map-info {d}/map", ["map.yaml", "malformed YAML"], {"map/map.yaml": append("counts: [\n")}),
     ("rangemcl map-info {d}/map", ["map.yaml", "mapping"], {"map/map.yaml": "- 1\n"}),
     (
         "rangemcl map-info {d}/map",
-        ["mesh.ply", "24 triangles", "25"],
+        ["tiles.json", "24 triangles", "25"],
         {"map/map.yaml": replace("triangles: 24", "triangles: 25")},
     ),
     ("rangemcl map-info {d}/map", ["drive.npz", "not an .npz file"], {"map/drive.npz": b"\x93NUMPY junk"}),
@@ -402,12 +414,12 @@ CASES: list[tuple[str, list[str], dict]] = [
     (
         "rangemcl map-info {d}/map",
         ["map.yaml", "format_version"],
-        {"map/map.yaml": replace("format_version: 1", "format_version: 99")},
+        {"map/map.yaml": replace("format_version: 2", "format_version: 99")},
     ),
     # --- rangemcl map-quality
     ("rangemcl map-quality {d}/nope --truth {d}/ground.ply", ["nope", "does not exist"], {}),
-    (QUALITY, ["tiles.npz", "not an .npz file"], {"map/tiles.npz": b"garbage"}),
-    (QUALITY, ["mesh.ply", "truncated"], {"map/mesh.ply": halve}),
+    (QUALITY, ["tiles.json", "cannot read"], {"map/tiles.json": b"garbage"}),
+    (QUALITY, ["tiles/1_1.npz", "truncated"], {"map/tiles/1_1.npz": halve}),
     ("rangemcl map-quality {d}/map --truth {d}/nope.ply", ["nope.ply", "does not exist"], {}),
     ("rangemcl map-quality {d}/map --truth {d}/m.obj", ["m.obj", "no triangles"], {"m.obj": "not a mesh\n"}),
     (QUALITY + " --tolerance 0", ["--tolerance", "0"], {}),
@@ -447,8 +459,8 @@ CASES: list[tuple[str, list[str], dict]] = [
     ("rangemcl localize {d}/seq --map {d}/nope --out {d}/o", ["nope", "does not exist"], {}),
     ("rangemcl localize {d}/seq --map {d}/a_file --out {d}/o", ["a_file", "not a folder"], {}),
     (LOC, ["map.yaml", "missing"], {"map/map.yaml": None}),
-    (LOC, ["mesh.ply", "truncated"], {"map/mesh.ply": halve}),
-    (LOC, ["tiles.npz", "cannot read"], {"map/tiles.npz": b"PK\x05\x06"}),
+    (LOC, ["tiles/0_1.npz", "truncated"], {"map/tiles/0_1.npz": halve}),
+    (LOC, ["tiles.json", "not a tile index"], {"map/tiles.json": "[]"}),
     # --- rangemcl localize: the config
     (LOC + " --config " + CFG, ["c.yaml", "malformed YAML"], {"c.yaml": "refine: {gate_m: \n"}),
     (LOC + " --config " + CFG, ["c.yaml", "refine.gate_mm", "gate_m"], {"c.yaml": "refine:\n  gate_mm: 1\n"}),

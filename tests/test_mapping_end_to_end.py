@@ -172,7 +172,7 @@ def test_sigterm_keeps_the_work_for_resume_and_stops_the_workers(drive, tmp_path
     _, err = proc.communicate(timeout=30)
     assert proc.returncode != 0
     assert not list(work.iterdir()), err  # nothing in the system's temp folder
-    assert not (tmp_path / "m" / "mesh.ply").exists()
+    assert not (tmp_path / "m" / "map.yaml").exists() and not (tmp_path / "m" / "tiles.json").exists()
     time.sleep(0.5)
     assert not [p for p in workers if os.path.exists(f"/proc/{p}") and "zombie" not in _state(p)]
     # the scan stage had finished: its work is kept in the map folder, and said so in one line
@@ -196,7 +196,9 @@ def test_sigterm_keeps_the_work_for_resume_and_stops_the_workers(drive, tmp_path
     # the same map, byte for byte, as an uninterrupted build
     fresh = build("--out", str(tmp_path / "fresh"))
     assert fresh.returncode == 0, fresh.stderr
-    for name in ("mesh.ply", "tiles.npz", "ground.npz"):
+    names = sorted(str(p.relative_to(tmp_path / "fresh")) for p in (tmp_path / "fresh").rglob("*.npz"))
+    assert "ground.npz" in names and any(n.startswith("tiles/") for n in names)
+    for name in (*names, "tiles.json"):
         assert (tmp_path / "m" / name).read_bytes() == (tmp_path / "fresh" / name).read_bytes(), name
 
 

@@ -98,8 +98,8 @@ def test_surface_voxels_of_a_map_are_cached_and_follow_the_mesh_file(tmp_path, m
     monkeypatch.setattr(models, "surface_voxels", lambda *a, **k: calls.append(1) or np.zeros((1, 3)))
     np.testing.assert_array_equal(models.cached_surface_voxels(m, 0.1), first)  # from the cache
     assert calls == []
-    st = (tmp_path / "map" / "mesh.ply").stat()
-    os.utime(tmp_path / "map" / "mesh.ply", ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    st = (tmp_path / "map" / "tiles.json").stat()  # the tile index changes with every save of the mesh
+    os.utime(tmp_path / "map" / "tiles.json", ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
     assert len(models.cached_surface_voxels(m, 0.1)) == 1 and calls == [1]  # a changed file: computed
 
 
