@@ -919,3 +919,47 @@ def test_unknown_handle_and_negative_threads_are_input_errors():
         rc.update_vertices(-1, np.zeros((8, 3)))
     with pytest.raises(InputError, match="threads"):
         RayCaster(threads=-1)
+
+
+def test_a_map_cast_tile_by_tile_hits_exactly_what_the_whole_mesh_hits(tmp_path):
+    """Issue 17: the tiles of a map folder (format 2), each its own mesh in the caster, give the ranges of
+    the whole mesh bit for bit for rays that cross tile borders (a face belongs to one tile, a shared
+    vertex has the same value in both files), and both agree with the brute force."""
+    from rangemcl.mapping.meshmap import MeshMap
+    from rangemcl.mapping.store import TileStore
+
+    rng = np.random.default_rng(4)
+    v, f = meshgen.grid_patch((-30.0, -30.0, 0.0), (60.0, 0, 0), (0, 60.0, 0), 24, 24)
+    v[:, 2] = rng.uniform(-0.2, 0.2, len(v))
+    parts = [(v, f)]
+    for x, y in [(0.0, 0.0), (20.0, -1.0), (-1.0, 20.0), (-20.0, -20.0), (9.0, 11.0)]:  # across borders
+        parts.append(meshgen.box((4.0, 3.0, 3.0), (x, y, 1.5), cell_m=1.0))
+    v, f = meshgen.merge(parts)
+    m = MeshMap.from_mesh(v, f, tile_size_m=20.0)
+    m.save(tmp_path / "map")
+    store = TileStore.open(tmp_path / "map")
+    assert len(store.entries) == 16  # the grid starts at floor(-30 / 20) * 20 = -40: borders at -20, 0, 20
+    whole = RayCaster("cpu", threads=2)
+    whole.add_mesh(m.vertices, m.faces)
+    tiled = RayCaster("cpu", threads=2)
+    for k in range(len(store.entries)):
+        tv, tf, _g = store.read(k)
+        tiled.add_mesh(tv, tf, name=str(store.entries[k].ij))
+    # rays from within 1 m of the tile corners near the centre, in every direction, some downwards
+    corners = np.array([[x, y] for x in (-20.0, 0.0, 20.0) for y in (-20.0, 0.0, 20.0)])
+    o = np.column_stack(
+        [corners[rng.integers(0, 9, 3000)] + rng.uniform(-1, 1, (3000, 2)), rng.uniform(0.5, 2.5, 3000)]
+    )
+    d = rng.normal(size=(3000, 3))
+    d[:, 2] = -np.abs(d[:, 2]) * 0.3
+    a, b = whole.cast(o, d, 40.0), tiled.cast(o, d, 40.0)
+    np.testing.assert_array_equal(a.ranges, b.ranges)
+    hit = np.isfinite(b.ranges)
+    assert hit.mean() > 0.7
+    p = o + d / np.linalg.norm(d, axis=1, keepdims=True) * np.where(hit, b.ranges, 0.0)[:, None]
+    across = m.tile_at(p[hit, 0], p[hit, 1]) != m.tile_at(o[hit, 0], o[hit, 1])
+    assert across.mean() > 0.3  # most rays end in another tile than they start in
+    ref = brute_force(f32(m.vertices), m.faces, f32(o), f32(d), 40.0)
+    ok = ~ref["ambiguous"]
+    assert ok.mean() > 0.9
+    np.testing.assert_allclose(b.ranges[ok], ref["t"][ok], rtol=1e-5, atol=1e-4)
