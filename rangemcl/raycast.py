@@ -134,6 +134,7 @@ class MeshInfo:
     n_faces: int
     dropped_degenerate: int
     face_map: np.ndarray  # (n_faces,) int32: index of each kept face in the faces given to add_mesh
+    removed: bool = False  # taken out of the scene by RayCaster.remove_mesh (its handle stays unused)
 
 
 _DRIVER_NOTICE = "Could not find or load the NVIDIA CUDA driver"
@@ -279,7 +280,7 @@ class RayCaster:
         if threads is not None and threads < 0:
             raise InputError(f"threads must be >= 0 (0 = all cores), got {threads}")
         self.threads = 1 if self.device != "cpu" else int(threads or default_threads())
-        self._meshes: list[wp.Mesh] = []
+        self._meshes: list[wp.Mesh | None] = []  # by handle; None once removed
         self._info: list[MeshInfo] = []
         self._poses: list[np.ndarray] = []  # T_world_mesh per mesh, (4, 4)
         self._inv_xforms: list[
@@ -287,6 +288,7 @@ class RayCaster:
         ] = []  # inverse pose per mesh as Warp's (px, py, pz, qx, qy, qz, qw)
         self._ids: wp.array | None = None
         self._inv: tuple[wp.array, wp.array] | None = None  # inverse poses, moved flags
+        self._live = np.zeros(0, np.int32)  # handle of each mesh in the arrays the kernels see
         self._lock = threading.Lock()
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
         wp.load_module(device=self.device)
@@ -319,7 +321,19 @@ class RayCaster:
     def _check_handle(self, handle: int) -> MeshInfo:
         if not isinstance(handle, int | np.integer) or not 0 <= handle < len(self._info):
             raise InputError(f"no mesh with handle {handle!r} (the scene has {len(self._info)})")
+        if self._info[handle].removed:
+            raise InputError(f"mesh {self._info[handle].name!r} (handle {handle}) was removed from the scene")
         return self._info[handle]
+
+    def remove_mesh(self, handle: int) -> None:
+        """Take a mesh out of the scene and free its BVH (a map tile leaving the memory budget); the other
+        handles stay valid and the handle is never reused."""
+        info = self._check_handle(handle)
+        with self._lock:
+            self._meshes[handle] = None
+            info.removed = True
+            self._ids = None
+            self._inv = None
 
     def set_pose(self, handle: int, T_world_mesh) -> None:
         """Place a mesh rigidly in the world (4×4 homogeneous, rotation part orthonormal)."""
@@ -360,19 +374,32 @@ class RayCaster:
         mesh.refit()
 
     def scene_arrays(self) -> tuple[wp.array, wp.array, wp.array]:
-        if not self._meshes:
+        """The scene's meshes as the kernels see them: BVH ids, inverse poses, moved flags (mesh ``k`` of
+        these arrays has handle ``live_handles[k]``)."""
+        live = [h for h, m in enumerate(self._meshes) if m is not None]
+        if not live:
             raise InputError("the ray-casting scene has no mesh: add one before casting")
         if self._ids is None:
-            self._ids = wp.array([m.id for m in self._meshes], dtype=wp.uint64, device=self.device)
+            self._live = np.asarray(live, np.int32)
+            self._ids = wp.array([self._meshes[h].id for h in live], dtype=wp.uint64, device=self.device)
         if self._inv is None:
-            moved = [0 if np.array_equal(T, np.eye(4)) else 1 for T in self._poses]
+            moved = [0 if np.array_equal(self._poses[h], np.eye(4)) else 1 for h in live]
             self._inv = (
                 wp.array(
-                    np.asarray(self._inv_xforms, dtype=np.float32), dtype=wp.transform, device=self.device
+                    np.asarray([self._inv_xforms[h] for h in live], dtype=np.float32),
+                    dtype=wp.transform,
+                    device=self.device,
                 ),
                 wp.array(moved, dtype=wp.int32, device=self.device),
             )
         return self._ids, *self._inv
+
+    @property
+    def live_handles(self) -> np.ndarray:
+        """Handle of each mesh in :meth:`scene_arrays`' order."""
+        with self._lock:
+            self.scene_arrays()
+            return self._live.copy()
 
     # ------------------------------------------------------------------ casting
     def cast(
@@ -406,9 +433,11 @@ class RayCaster:
             return RayHits(ranges, mesh_ids, face_ids, normal_out if normals else None)
         with self._lock:
             ids, inv, moved = self.scene_arrays()
+            live = self._live
         if only is not None:
             self._check_handle(only)
-            ids, inv, moved = ids[only : only + 1], inv[only : only + 1], moved[only : only + 1]
+            k = int(np.searchsorted(live, only))
+            ids, inv, moved = ids[k : k + 1], inv[k : k + 1], moved[k : k + 1]
         dev = self.device
         inputs = [
             ids,
@@ -440,6 +469,9 @@ class RayCaster:
             ranges, mesh_ids, face_ids, normal_out = (a.numpy() for a in outs)
         if only is not None:
             mesh_ids[mesh_ids >= 0] = only
+        elif len(live) != len(self._meshes):  # some were removed: kernel indices to handles
+            hit = mesh_ids >= 0
+            mesh_ids[hit] = live[mesh_ids[hit]]
         return RayHits(ranges, mesh_ids, face_ids, normal_out if normals else None)
 
     def render(self, geometry, T_world_sensor, max_range_m: float = np.inf) -> np.ndarray:

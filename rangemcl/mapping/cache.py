@@ -32,6 +32,18 @@ def tile_distances(store: TileStore, focus_xy) -> np.ndarray:
     return np.hypot(dx, dy).min(axis=1)
 
 
+def caster_tiles(caster, bytes_per_triangle: float = 62.0, bytes_per_vertex: float = 12.0):
+    """``(prepare, release)`` for a :class:`TileCache` whose tiles live as meshes of ``caster``: a tile's
+    item is its mesh handle, its size the BVH's estimate (about 62 bytes a triangle with Warp's BVH and
+    the float32 vertices, measured on ``town_large``'s tiles: ``docs/design/issue17_notes.md``)."""
+
+    def prepare(v, f, g):
+        handle = caster.add_mesh(v, f, name="tile")
+        return handle, int(bytes_per_triangle * len(f) + bytes_per_vertex * len(v))
+
+    return prepare, caster.remove_mesh
+
+
 def array_bytes(v: np.ndarray, f: np.ndarray, g: np.ndarray) -> tuple[Any, int]:
     """The default ``prepare``: keep the tile's arrays; their bytes."""
     return (v, f, g), int(v.nbytes + f.nbytes + g.nbytes)
@@ -56,6 +68,8 @@ class TileCache:
         budget_bytes: the most the cache holds, as ``prepare`` counts it.
         prepare: ``(vertices, faces, is_ground) -> (item, nbytes)``; default :func:`array_bytes`.
         read: ``(store, k) -> (vertices, faces, is_ground)``; default ``store.read(k)`` (tests slow it).
+        release: called with a tile's item when it is evicted (e.g. to take its mesh out of a
+            :class:`~rangemcl.raycast.RayCaster`: :func:`caster_tiles`).
     """
 
     def __init__(
@@ -65,6 +79,7 @@ class TileCache:
         *,
         prepare: Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[Any, int]] = array_bytes,
         read: Callable[[TileStore, int], tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None,
+        release: Callable[[Any], None] | None = None,
     ):
         if budget_bytes <= 0:
             raise ValueError(f"budget_bytes must be positive, got {budget_bytes}")
@@ -72,6 +87,7 @@ class TileCache:
         self.budget_bytes = int(budget_bytes)
         self.prepare = prepare
         self.read = read or (lambda s, k: s.read(k))
+        self.release = release
         self.items: dict[int, tuple[Any, int]] = {}  # tile index -> (item, bytes)
         self.peak_bytes = 0
 
@@ -109,7 +125,9 @@ class TileCache:
             )
             while self.nbytes + size > self.budget_bytes and spare:
                 gone = spare.pop(0)
-                del self.items[gone]
+                item_gone, _n = self.items.pop(gone)
+                if self.release is not None:
+                    self.release(item_gone)
                 out.evicted.append(gone)
                 if gone in out.held:
                     out.held.remove(gone)

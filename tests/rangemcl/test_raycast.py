@@ -963,3 +963,34 @@ def test_a_map_cast_tile_by_tile_hits_exactly_what_the_whole_mesh_hits(tmp_path)
     ok = ~ref["ambiguous"]
     assert ok.mean() > 0.9
     np.testing.assert_allclose(b.ranges[ok], ref["t"][ok], rtol=1e-5, atol=1e-4)
+
+
+def test_a_removed_mesh_is_gone_and_the_other_handles_stay():
+    """remove_mesh (a tile leaving the memory budget): the scene casts as if the mesh had never been
+    added, hits name the remaining meshes by their own handles, and a new mesh gets a new handle."""
+    boxes = [meshgen.box((2.0, 2.0, 2.0), (x, 0.0, 0.0), cell_m=1.0) for x in (5.0, 10.0, 15.0)]
+    o = np.zeros((200, 3))
+    rng = np.random.default_rng(1)
+    d = np.column_stack([np.ones(200), rng.uniform(-0.05, 0.05, 200), rng.uniform(-0.05, 0.05, 200)])
+    c = RayCaster("cpu", threads=2)
+    handles = [c.add_mesh(v, f, name=f"b{k}") for k, (v, f) in enumerate(boxes)]
+    assert (c.cast(o, d).mesh_ids == handles[0]).all()  # the nearest box hides the others
+    c.remove_mesh(handles[0])
+    ref = RayCaster("cpu", threads=2)
+    ref.add_mesh(*boxes[1])
+    ref.add_mesh(*boxes[2])
+    a, b = c.cast(o, d), ref.cast(o, d)
+    np.testing.assert_array_equal(a.ranges, b.ranges)
+    assert (a.mesh_ids == handles[1]).all() and c.meshes[0].removed
+    np.testing.assert_array_equal(c.live_handles, [1, 2])
+    only = c.cast(o, d, only=handles[2])
+    np.testing.assert_array_equal(only.ranges, ref.cast(o, d, only=1).ranges)
+    assert (only.mesh_ids == handles[2]).all()
+    c.remove_mesh(handles[1])
+    assert (c.cast(o, d).mesh_ids == handles[2]).all()
+    with pytest.raises(InputError, match="removed"):
+        c.remove_mesh(handles[1])
+    with pytest.raises(InputError, match="removed"):
+        c.cast(o, d, only=handles[0])
+    assert c.add_mesh(*boxes[0]) == 3
+    assert (c.cast(o, d).mesh_ids == 3).all()

@@ -75,3 +75,28 @@ def test_a_wanted_tile_is_not_read_again(store):
     assert again.held == first.held
     with pytest.raises(ValueError):
         TileCache(store, 0)
+
+
+def test_tiles_in_a_caster_leave_it_when_evicted(store):
+    """With :func:`caster_tiles` the cache's tiles are meshes of a RayCaster: an evicted tile is taken out
+    of the scene (rays pass where it was), a held one is hit."""
+    from rangemcl.mapping.cache import caster_tiles
+    from rangemcl.raycast import RayCaster
+
+    caster = RayCaster("cpu", threads=1)
+    prepare, release = caster_tiles(caster)
+    one = prepare(*store.read(0))[1]
+    release(0)
+    cache = TileCache(store, budget_bytes=2 * one, prepare=prepare, release=release)
+    down = np.array([[0.0, 0.0, -1.0]])
+
+    def hit_at(x, y):
+        return bool(np.isfinite(caster.cast(np.array([[x, y, 5.0]]), down, 10.0).ranges[0]))
+
+    r = cache.request([[10.0, 10.0]], 0.0)  # tile (0, 0) only
+    assert r.held and hit_at(10.0, 10.0) and not hit_at(90.0, 90.0)
+    r = cache.request([[90.0, 90.0]], 0.0)
+    assert hit_at(90.0, 90.0) and hit_at(10.0, 10.0)  # both fit
+    cache.request([[50.0, 50.0]], 0.0)  # a third tile: the farthest of the others goes
+    assert hit_at(50.0, 50.0) and hit_at(10.0, 10.0) != hit_at(90.0, 90.0)
+    assert len(caster.live_handles) == len(cache.items) == 2
