@@ -32,6 +32,7 @@ FORMAT = 1
 # Classes whose objects are built from the map and the settings, never state.
 RESOURCES = {
     "rangemcl.mapping.meshmap.MeshMap",
+    "rangemcl.mapping.view.MapView",
     "rangemcl.raycast.RayCaster",
     "rangemcl.raycast.MeshInfo",
     "rangemcl.rangeimage.RangeImageGeometry",

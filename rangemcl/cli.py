@@ -487,6 +487,12 @@ def localize(
     scan_stamp: str = _SCAN_STAMP,
     plots: bool = typer.Option(True, help="Write trajectory, error and particle plots."),
     threads: int = typer.Option(None, help="CPU threads for ray casting (default: all cores)."),
+    map_memory: float = typer.Option(
+        None,
+        metavar="MB",
+        help="Hold only the map's tiles near the particles, within this many MB (a map of format 2; "
+        "default: the whole map).",
+    ),
     overwrite: bool = typer.Option(
         False, help="Replace the results that OUT holds (they are kept until this run has results)."
     ),
@@ -536,6 +542,7 @@ def localize(
         plots=plots,
         progress=sys.stderr.isatty(),
         resume=resume,
+        map_memory_mb=map_memory,
     )
     from rangemcl.outdir import RESULT_MARKERS, has_frames, output_folder
 

@@ -58,7 +58,7 @@ from rangemcl.viz import RunViewer, check_rrd_path, rerun_module
 FRAME_COLUMNS = (
     "frame,time_s,x,y,yaw,particles,converged,updated,resampled,skipped_scan,recovered,"
     "best_residual_m,seconds,hypotheses,evidence_nats,inliers,vetoed,refined,refine_shift_m,"
-    "odometry_scale,gyro_bias_deg_s"
+    "odometry_scale,gyro_bias_deg_s,map_tiles,map_left_out,map_mb,map_load_ms"
 )
 
 
@@ -81,6 +81,7 @@ class RunOptions:
     progress: bool = False
     resume: bool = False  # continue the interrupted run in the results folder (its checkpoint)
     checkpoint_every: int = 10  # frames between two checkpoints of the filter's state
+    map_memory_mb: float | None = None  # --map-memory: hold only the tiles near the particles, within this
 
 
 KISS_ODOMETRY = "odometry_kiss_icp.txt"  # --odometry kiss-icp: the LiDAR poses it gave, in the results
@@ -251,7 +252,15 @@ class LocalizationPipeline:
         self.seq = seq = open_source(self.seq_dir, bag_options=opt.bag)
         if len(seq) == 0:
             raise InputError(f"{seq.root}: the sequence has no scans")
-        self.map = MeshMap.load(self.map_dir)
+        self.caster = None
+        if opt.map_memory_mb is not None:  # the tiles near the particles only (rangemcl.mapping.view)
+            from rangemcl.mapping.view import MapView
+            from rangemcl.raycast import RayCaster
+
+            self.caster = RayCaster(opt.device, opt.threads)
+            self.map = MapView(self.map_dir, opt.map_memory_mb, self.caster)
+        else:
+            self.map = MeshMap.load(self.map_dir)
         check_map_frame(seq, self.map)
         self.kiss_poses = None
         if opt.odometry == "kiss-icp":  # computed once: a resumed run reads what the run wrote
@@ -295,6 +304,7 @@ class LocalizationPipeline:
             device=opt.device,
             threads=opt.threads,
             sensor_height_m=self.height,
+            caster=self.caster,
         )
         if opt.mode == "global":
             loc.spread(opt.particles)
@@ -315,7 +325,8 @@ class LocalizationPipeline:
         self.log = FrameLog.empty(self.last - self.first)
         if opt.viz or opt.viz_out:
             self.viz = RunViewer.open(f"localize {Path(seq.root).name}", out_rrd=opt.viz_out, spawn=opt.viz)
-            self.viz.log_mesh_map(self.map)
+            if isinstance(self.map, MeshMap):  # a map within a budget is not sent whole
+                self.viz.log_mesh_map(self.map)
 
     def fingerprint(self) -> dict:
         """What decides a run's results: a resumed run must have the same."""
@@ -329,7 +340,8 @@ class LocalizationPipeline:
                 for k in ("mode", "particles", "device", "seed", "first_frame", "frames", "init_pose")
             }
             | {"odometry_from_poses": opt.odometry_from_poses, "odometry": opt.odometry}
-            | ({"bag": asdict(opt.bag)} if opt.bag is not None else {}),
+            | ({"bag": asdict(opt.bag)} if opt.bag is not None else {})
+            | ({"map_memory_mb": opt.map_memory_mb} if opt.map_memory_mb is not None else {}),
         }
         return json.loads(json.dumps(fp))
 
@@ -439,6 +451,8 @@ class LocalizationPipeline:
             csv.close()
             bar.close()
             self.viz.close()
+            if not isinstance(self.map, MeshMap):  # a map within a budget: stop its tile loader
+                self.map.close()
         log.wall_s = time.perf_counter() - clock
         log.trim()
 
@@ -545,6 +559,8 @@ class LocalizationPipeline:
             "calib_Tr": seq.calib_Tr.tolist(),
             "calib_source": seq.calib_source,
         }
+        if hasattr(self.map, "summary"):
+            summary["map_memory"] = self.map.summary()
         if loc.prior is not None:
             summary["place_prior"] = {
                 "source": loc.prior_source,
@@ -615,7 +631,8 @@ class LocalizationPipeline:
             f"{int(info.updated)},{int(info.resampled)},{int(info.skipped_scan)},{int(info.recovered)},"
             f"{info.best_residual_m:.4f},{info.seconds:.4f},{info.hypotheses},{info.evidence_nats:.3f},"
             f"{info.inliers:.3f},{int(info.vetoed)},{info.refined},{info.refine_shift_m:.4f},"
-            f"{info.odometry_scale:.5f},{info.gyro_bias_deg_s:.4f}\n"
+            f"{info.odometry_scale:.5f},{info.gyro_bias_deg_s:.4f},{info.map_tiles},{info.map_left_out},"
+            f"{info.map_mb:.2f},{info.map_load_ms:.1f}\n"
         )
 
 

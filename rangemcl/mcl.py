@@ -519,6 +519,7 @@ def build_localizer(
         refine_gate_m=f.gate_m,
         refine_gate_deg=f.gate_deg,
         refine_all_heights_updates=f.all_heights_updates,
+        map_radius_m=o.max_range_m + o.margin_m + f.max_residual_m + 0.5,
         calibration_settle_updates=m.calibration_settle_updates,
         residual_model=residual_model,
         select_rays=ray_selector(o),

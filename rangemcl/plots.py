@@ -34,7 +34,10 @@ def save_range_image_png(
 
 def _map_background(ax, mesh_map, max_points: int = 150_000) -> None:
     """The map's non-ground vertices from above, light grey."""
-    v = mesh_map.vertices[~mesh_map.is_ground]
+    if hasattr(mesh_map, "background_points"):  # a map within a memory budget: read tile by tile
+        v = mesh_map.background_points(max_points)
+    else:
+        v = mesh_map.vertices[~mesh_map.is_ground]
     if len(v) > max_points:
         v = v[:: int(np.ceil(len(v) / max_points))]
     ax.scatter(v[:, 0], v[:, 1], s=0.2, c="0.75", linewidths=0, rasterized=True)

@@ -23,7 +23,7 @@ from __future__ import annotations
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import warp as wp
@@ -135,6 +135,14 @@ class MeshInfo:
     dropped_degenerate: int
     face_map: np.ndarray  # (n_faces,) int32: index of each kept face in the faces given to add_mesh
     removed: bool = False  # taken out of the scene by RayCaster.remove_mesh (its handle stays unused)
+
+
+@dataclass
+class BuiltMesh:
+    """A mesh with its BVH, built by :meth:`RayCaster.build_mesh` and not yet in a scene."""
+
+    mesh: wp.Mesh
+    info: MeshInfo
 
 
 _DRIVER_NOTICE = "Could not find or load the NVIDIA CUDA driver"
@@ -299,17 +307,31 @@ class RayCaster:
 
         ``pose`` is ``T_world_mesh`` (4×4, default identity).
         """
-        name = name or f"mesh{len(self._meshes)}"
+        built = self.build_mesh(vertices, faces, name=name or f"mesh{len(self._meshes)}")
+        return self.insert_mesh(built, movable=movable, pose=pose)
+
+    def build_mesh(self, vertices, faces, *, name: str | None = None) -> BuiltMesh:
+        """The expensive half of :meth:`add_mesh`: check the mesh and build its BVH on this caster's device,
+        without touching the scene (safe from another thread while this caster casts: a map's tile loader
+        builds tiles in the background); :meth:`insert_mesh` puts it in the scene."""
+        name = name or "mesh"
         v, f, kept = clean_mesh(name, vertices, faces)
         with wp.ScopedDevice(self.device):
             mesh = wp.Mesh(points=wp.array(v, dtype=wp.vec3), indices=wp.array(f.ravel(), dtype=wp.int32))
-        self._meshes.append(mesh)
-        self._info.append(MeshInfo(name, movable, len(v), len(f), int(len(faces) - len(kept)), kept))
-        self._poses.append(np.eye(4))
-        self._inv_xforms.append(np.array([0, 0, 0, 0, 0, 0, 1.0]))
-        self._ids = None
-        self._inv = None
-        handle = len(self._meshes) - 1
+        return BuiltMesh(mesh, MeshInfo(name, False, len(v), len(f), int(len(faces) - len(kept)), kept))
+
+    def insert_mesh(self, built: BuiltMesh, *, movable: bool = False, pose=None) -> int:
+        """Put a mesh from :meth:`build_mesh` in the scene (the thread that casts); returns its handle."""
+        if built.mesh.device != self.device:
+            raise InputError(f"mesh {built.info.name!r} was built on {built.mesh.device}, not {self.device}")
+        with self._lock:
+            self._meshes.append(built.mesh)
+            self._info.append(replace(built.info, movable=movable))
+            self._poses.append(np.eye(4))
+            self._inv_xforms.append(np.array([0, 0, 0, 0, 0, 0, 1.0]))
+            self._ids = None
+            self._inv = None
+            handle = len(self._meshes) - 1
         if pose is not None:
             self.set_pose(handle, pose)
         return handle

@@ -301,7 +301,12 @@ def test_sigkill_at_three_moments_resumes_to_the_same_map_and_leaves_no_process(
     assert not (out / ".build").exists()
     if moment != "scans":
         assert "taken from the interrupted build" in resumed.stdout
-    names = sorted(p.name for p in uninterrupted.iterdir() if p.name != "report.json")
-    assert sorted(p.name for p in out.iterdir() if p.name != "report.json") == names
+    names = sorted(str(p.relative_to(uninterrupted)) for p in uninterrupted.rglob("*") if p.is_file())
+    names.remove("report.json")
+    assert (
+        sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file() and p.name != "report.json")
+        == names
+    )
+    assert any(name.startswith("tiles/") for name in names)
     for name in names:
         assert (out / name).read_bytes() == (uninterrupted / name).read_bytes(), name

@@ -84,6 +84,10 @@ class StepInfo:
     refine_shift_m: float = math.nan  # the refinement's correction (x, y), taken or refused
     odometry_scale: float = math.nan  # the calibration's current translation scale ...
     gyro_bias_deg_s: float = math.nan  # ... and gyro bias
+    map_tiles: int = -1  # a map within a memory budget (MapView): tiles held at this update (-1: whole map)
+    map_left_out: int = 0  # ... tiles wanted but left out (they did not fit the budget)
+    map_mb: float = math.nan  # ... MB the held tiles take
+    map_load_ms: float = math.nan  # ... milliseconds this update waited for tiles to load
 
 
 class MonteCarloLocalizer:
@@ -125,6 +129,7 @@ class MonteCarloLocalizer:
         refine_gate_deg: float = 1.0,
         refine_all_heights_updates: int = 10,
         calibration_settle_updates: int = 10,
+        map_radius_m: float = 43.0,
         sensor_height_m: float = 1.73,
         # motion and scan
         update_distance_m: float = 0.2,
@@ -186,6 +191,7 @@ class MonteCarloLocalizer:
         self.calibrator = calibrator
         self.refine_gate = (float(refine_gate_m), math.radians(refine_gate_deg))
         self.refine_all_heights_updates = int(refine_all_heights_updates)
+        self.map_radius_m = float(map_radius_m)  # a map within a budget: tiles this near the particles
         self.calibration_settle_updates = int(calibration_settle_updates)
         self.sensor_height_m = float(sensor_height_m)
         self.update_distance_m = float(update_distance_m)
@@ -408,6 +414,10 @@ class MonteCarloLocalizer:
                 levelled = level() if self._needs_prior() else None
                 if self._prior_pending and levelled is not None:
                     self._draw_initial_prior(levelled)
+                if hasattr(self.map, "update"):  # a map within a memory budget (rangemcl.mapping.view)
+                    info.update(
+                        self.map.update(self.particles[:, :2], self.map_radius_m, wait=not self.converged)
+                    )
                 info.update(self._weigh(rays, levelled, level))
                 if self.converged and self._state_calibration():
                     self.calibrator.weighted(self.weights)

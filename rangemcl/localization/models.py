@@ -254,6 +254,11 @@ def make_model(name: str, caster, settings, mesh_map) -> ScoringModel:
     if name == "histogram":
         kernel = ParticleRenderer(caster, margin_m=max(o.max_range_m, 1.0))
         return HistogramModel(kernel, o.histogram_bins, o.max_range_m, o.histogram_sigma)
+    if name == "likelihood_field" and not hasattr(mesh_map, "vertices"):
+        raise InputError(
+            "the likelihood_field model needs the whole map's surface: not with a memory budget "
+            "(--map-memory)"
+        )
     if name == "likelihood_field":
         return LikelihoodFieldModel(
             cached_surface_voxels(mesh_map, o.field_voxel_m),

@@ -277,7 +277,7 @@ def prior_key(mesh_map, cells_xy: np.ndarray, params: PriorParams) -> str:
     ``rangemcl map-upgrade`` changes: a tile file holds the vertices its faces use, so border vertices
     are in two files), the cells, the parameters."""
     h = hashlib.sha1()
-    h.update(repr((len(mesh_map.faces), tuple(np.round(mesh_map.extent, 3)))).encode())
+    h.update(repr((int(mesh_map.n_triangles), tuple(np.round(mesh_map.extent, 3)))).encode())
     h.update(np.ascontiguousarray(np.round(cells_xy, 3)).tobytes())
     h.update(repr(asdict(params)).encode())
     return h.hexdigest()[:20]
@@ -307,7 +307,17 @@ def load_or_build(
         if prior is not None:
             return prior, "loaded"
     gz = mesh_map.ground.height_at(xy[:, 0], xy[:, 1])
-    prior = PlacePrior.build(caster, xy, gz, params)
+    if hasattr(mesh_map, "update"):  # a map seen within a memory budget: rendered tile by tile
+        t0 = time.perf_counter()
+        tile = mesh_map.tile_at(xy[:, 0], xy[:, 1])
+        profiles = np.empty((len(xy), 2, params.bins), np.uint8)
+        for t in np.unique(tile):
+            sel = np.flatnonzero(tile == t)
+            mesh_map.update(xy[sel], params.max_range_m + 1.0)
+            profiles[sel] = PlacePrior.build(caster, xy[sel], gz[sel], params).profiles
+        prior = PlacePrior(xy, profiles, params, build_s=time.perf_counter() - t0)
+    else:
+        prior = PlacePrior.build(caster, xy, gz, params)
     how = "built"
     if path is not None:
         try:

@@ -1,25 +1,37 @@
-"""A byte budget over a map's tiles (issue 17): which tiles are in memory, and which go first.
+"""A byte budget over a map's tiles (issue 17): which tiles are in memory, which go first, and a loader
+that works in the background.
 
-:class:`TileCache` holds what a ``prepare`` function makes of each tile read from a
-:class:`~rangemcl.mapping.store.TileStore` (by default the tile's arrays; the localizer's will be a Warp
-mesh), with its size in bytes, and never more than ``budget_bytes`` in all. :meth:`TileCache.request`
-takes focus points (the estimate, or each hypothesis cluster's centre) and a radius (the sensor's maximum
-range): the tiles whose box lies within the radius of a focus are wanted, nearest first; tiles no longer
-wanted are evicted farthest first to make room, and wanted tiles that do not fit are left out, farthest
-first, and reported (the caller falls back on a coarse level or goes without them, and says so).
+:class:`TileCache` holds what a :class:`TileKind` makes of each tile of a
+:class:`~rangemcl.mapping.store.TileStore` (by default the tile's arrays; the localizer's are Warp meshes
+in its ray caster, :func:`caster_tiles`), never more than ``budget_bytes`` in all. A tile's size is known
+from the index before it is read, so room is made before a tile is loaded and a tile being loaded counts
+against the budget. :meth:`TileCache.request` takes focus points (the estimate, or each hypothesis
+cluster's centre) and a radius (the sensor's maximum range): the tiles whose box lies within the radius
+of a focus are wanted, nearest first, and those within ``radius + prefetch`` are loaded ahead; tiles no
+longer wanted are evicted farthest first to make room, and wanted tiles that do not fit are left out and
+reported (the caller goes without them and says so).
 
-Pure Python and numpy; single-threaded (a background loader calls it from one thread).
+With ``background=True`` tiles are read and prepared (file, checksum, inflation, BVH build) in a worker
+thread: a request starts the loads it needs and returns at once with what is held, the tiles still
+loading reported as left out, unless it is told to ``wait`` (the first request of a run, or a search
+that must not score particles against missing tiles). Loaded tiles enter the cache (``install``, e.g.
+into the ray caster's scene) only inside :meth:`TileCache.request`, on the caller's thread, so the scene
+never changes while the caller casts rays.
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import wait as wait_futures
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from rangemcl.mapping.store import TileStore
+from rangemcl.errors import InputError
+from rangemcl.mapping.store import TileEntry, TileStore
 
 
 def tile_distances(store: TileStore, focus_xy) -> np.ndarray:
@@ -32,21 +44,40 @@ def tile_distances(store: TileStore, focus_xy) -> np.ndarray:
     return np.hypot(dx, dy).min(axis=1)
 
 
-def caster_tiles(caster, bytes_per_triangle: float = 62.0, bytes_per_vertex: float = 12.0):
-    """``(prepare, release)`` for a :class:`TileCache` whose tiles live as meshes of ``caster``: a tile's
-    item is its mesh handle, its size the BVH's estimate (about 62 bytes a triangle with Warp's BVH and
-    the float32 vertices, measured on ``town_large``'s tiles: ``docs/design/issue17_notes.md``)."""
+@dataclass(frozen=True)
+class TileKind:
+    """How a cache holds a tile.
 
-    def prepare(v, f, g):
-        handle = caster.add_mesh(v, f, name="tile")
-        return handle, int(bytes_per_triangle * len(f) + bytes_per_vertex * len(v))
+    ``size_of(entry)``: its bytes, from the index alone; ``prepare(vertices, faces, is_ground)``: the item,
+    on any thread; ``install(item)``: what the cache holds, on the requesting thread; ``release(held)``:
+    called when the tile is evicted."""
 
-    return prepare, caster.remove_mesh
+    size_of: Callable[[TileEntry], int]
+    prepare: Callable[[np.ndarray, np.ndarray, np.ndarray], Any]
+    install: Callable[[Any], Any] = lambda item: item
+    release: Callable[[Any], None] | None = None
 
 
-def array_bytes(v: np.ndarray, f: np.ndarray, g: np.ndarray) -> tuple[Any, int]:
-    """The default ``prepare``: keep the tile's arrays; their bytes."""
-    return (v, f, g), int(v.nbytes + f.nbytes + g.nbytes)
+def tile_arrays() -> TileKind:
+    """The default kind: a tile's arrays as the store reads them (float64 vertices, int32 faces, bool
+    ground flags)."""
+    return TileKind(
+        size_of=lambda e: 25 * e.vertices + 12 * e.triangles,
+        prepare=lambda v, f, g: (v, f, g),
+    )
+
+
+def caster_tiles(caster, bytes_per_triangle: float = 62.0, bytes_per_vertex: float = 12.0) -> TileKind:
+    """Tiles that live as meshes of ``caster`` (a :class:`~rangemcl.raycast.RayCaster`): the BVH is built
+    by ``prepare`` (the loader thread), the mesh enters the scene at ``install`` and leaves it at
+    ``release``; a tile's size is the BVH's estimate, about 62 bytes a triangle with Warp's BVH and the
+    float32 vertices (measured on ``town_large``'s tiles: ``docs/design/issue17_notes.md``)."""
+    return TileKind(
+        size_of=lambda e: int(bytes_per_triangle * e.triangles + bytes_per_vertex * e.vertices),
+        prepare=lambda v, f, g: caster.build_mesh(v, f, name="tile"),
+        install=caster.insert_mesh,
+        release=caster.remove_mesh,
+    )
 
 
 @dataclass
@@ -55,9 +86,12 @@ class Request:
 
     wanted: list[int]  # tiles within the radius, nearest first
     held: list[int]  # ... of them in memory now
-    left_out: list[int]  # ... of them that did not fit the budget (farthest first)
-    loaded: list[int] = field(default_factory=list)  # read at this request
+    left_out: list[int]  # ... of them not held: no room in the budget, still loading, or broken
+    loading: list[int] = field(default_factory=list)  # tiles (wanted or ahead) the loader is working on
+    loaded: list[int] = field(default_factory=list)  # entered the cache at this request
     evicted: list[int] = field(default_factory=list)  # dropped at this request, in order
+    broken: list[int] = field(default_factory=list)  # found unreadable at this request (see TileCache.broken)
+    wait_ms: float = 0.0  # how long this request waited for tiles to load
 
 
 class TileCache:
@@ -65,11 +99,10 @@ class TileCache:
 
     Args:
         store: the map's tiles.
-        budget_bytes: the most the cache holds, as ``prepare`` counts it.
-        prepare: ``(vertices, faces, is_ground) -> (item, nbytes)``; default :func:`array_bytes`.
+        budget_bytes: the most the cache holds and loads at once, as ``kind.size_of`` counts it.
+        kind: how a tile is held (:class:`TileKind`); default :func:`tile_arrays`.
         read: ``(store, k) -> (vertices, faces, is_ground)``; default ``store.read(k)`` (tests slow it).
-        release: called with a tile's item when it is evicted (e.g. to take its mesh out of a
-            :class:`~rangemcl.raycast.RayCaster`: :func:`caster_tiles`).
+        background: load in a worker thread (module docstring).
     """
 
     def __init__(
@@ -77,66 +110,120 @@ class TileCache:
         store: TileStore,
         budget_bytes: int,
         *,
-        prepare: Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[Any, int]] = array_bytes,
+        kind: TileKind | None = None,
         read: Callable[[TileStore, int], tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None,
-        release: Callable[[Any], None] | None = None,
+        background: bool = False,
     ):
         if budget_bytes <= 0:
             raise ValueError(f"budget_bytes must be positive, got {budget_bytes}")
         self.store = store
         self.budget_bytes = int(budget_bytes)
-        self.prepare = prepare
+        self.kind = kind or tile_arrays()
         self.read = read or (lambda s, k: s.read(k))
-        self.release = release
-        self.items: dict[int, tuple[Any, int]] = {}  # tile index -> (item, bytes)
+        self.sizes = [int(self.kind.size_of(e)) for e in store.entries]
+        self.items: dict[int, Any] = {}  # tile index -> held item
+        self.broken: dict[int, str] = {}  # tile index -> the error line; never read again
         self.peak_bytes = 0
+        self._loading: dict[int, Future] = {}
+        self._dropped: list[tuple[int, Future]] = []  # evicted while loading: their bytes count until done
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="tiles") if background else None
 
     @property
     def nbytes(self) -> int:
-        return sum(n for _item, n in self.items.values())
+        """Bytes of the tiles held."""
+        return sum(self.sizes[k] for k in self.items)
+
+    @property
+    def reserved_bytes(self) -> int:
+        """Bytes of the tiles held and of those being loaded (what the budget bounds)."""
+        self._dropped = [(k, fu) for k, fu in self._dropped if not fu.done()]
+        return (
+            self.nbytes
+            + sum(self.sizes[k] for k in self._loading)
+            + sum(self.sizes[k] for k, _ in self._dropped)
+        )
 
     def get(self, k: int):
-        """The prepared item of tile ``k`` if held, else None."""
-        it = self.items.get(k)
-        return None if it is None else it[0]
+        """The held item of tile ``k``, else None."""
+        return self.items.get(k)
 
-    def request(self, focus_xy, radius_m: float) -> Request:
-        """Hold the tiles within ``radius_m`` of the focus points, nearest first, within the budget: room
-        for a tile is made by evicting, farthest first, the tiles no longer wanted and then the wanted
-        ones farther than it; a tile that still does not fit is left out."""
+    def _load(self, k: int):
+        v, f, g = self.read(self.store, k)
+        return self.kind.prepare(v, f, g)
+
+    def _start(self, k: int, out: Request) -> None:
+        if self._pool is None:
+            fu: Future = Future()
+            t0 = time.perf_counter()
+            try:
+                fu.set_result(self._load(k))
+            except InputError as e:
+                fu.set_exception(e)
+            out.wait_ms += (time.perf_counter() - t0) * 1e3
+        else:
+            fu = self._pool.submit(self._load, k)
+        self._loading[k] = fu
+        self.peak_bytes = max(self.peak_bytes, self.reserved_bytes)
+
+    def _evict(self, k: int, out: Request) -> None:
+        if k in self.items:
+            held = self.items.pop(k)
+            if self.kind.release is not None:
+                self.kind.release(held)
+        else:
+            fu = self._loading.pop(k)
+            if not fu.cancel():
+                self._dropped.append((k, fu))
+        out.evicted.append(k)
+
+    def _harvest(self, out: Request) -> None:
+        """Loads that have finished enter the cache (on this thread)."""
+        for k in [k for k, fu in self._loading.items() if fu.done()]:
+            fu = self._loading.pop(k)
+            try:
+                item = fu.result()
+            except InputError as e:
+                self.broken[k] = str(e)
+                out.broken.append(k)
+                continue
+            self.items[k] = self.kind.install(item)
+            out.loaded.append(k)
+
+    def request(self, focus_xy, radius_m: float, *, prefetch_m: float = 0.0, wait: bool = True) -> Request:
+        """Hold the tiles within ``radius_m`` of the focus points and load those within ``radius_m +
+        prefetch_m``, nearest first, within the budget: room for a tile is made by evicting, farthest first,
+        the tiles no longer wanted and then the wanted ones farther than it; a tile that still does not fit
+        is left out. In the background, ``wait`` blocks until the wanted tiles' loads have finished."""
+        out = Request(wanted=[], held=[], left_out=[])
+        self._harvest(out)
         dist = tile_distances(self.store, focus_xy)
-        wanted = [int(k) for k in np.argsort(dist, kind="stable") if dist[k] <= radius_m]
-        want = set(wanted)
-        out = Request(wanted=wanted, held=[], left_out=[])
-        for k in wanted:
-            if k in out.evicted:  # made room for a nearer tile at this request: not read again
-                out.left_out.append(k)
+        order = np.argsort(dist, kind="stable")
+        ahead = [int(k) for k in order if dist[k] <= radius_m + prefetch_m and int(k) not in self.broken]
+        want = set(ahead)
+        out.wanted = [k for k in (int(k) for k in order) if dist[k] <= radius_m]
+        for k in ahead:
+            if k in self.items or k in self._loading or k in out.evicted:
                 continue
-            if k in self.items:
-                out.held.append(k)
-                continue
-            v, f, g = self.read(self.store, k)
-            item, size = self.prepare(v, f, g)
-            del v, f, g
-            # farthest first: tiles not wanted, then wanted tiles farther than this one
             spare = sorted(
-                (j for j in self.items if j not in want or dist[j] > dist[k]),
+                (j for j in [*self.items, *self._loading] if j not in want or dist[j] > dist[k]),
                 key=lambda j: (j in want, -dist[j]),
             )
-            while self.nbytes + size > self.budget_bytes and spare:
-                gone = spare.pop(0)
-                item_gone, _n = self.items.pop(gone)
-                if self.release is not None:
-                    self.release(item_gone)
-                out.evicted.append(gone)
-                if gone in out.held:
-                    out.held.remove(gone)
-                    out.left_out.append(gone)
-            if self.nbytes + size > self.budget_bytes:
-                out.left_out.append(k)
-                continue
-            self.items[k] = (item, size)
-            out.loaded.append(k)
-            out.held.append(k)
-            self.peak_bytes = max(self.peak_bytes, self.nbytes)
+            while self.reserved_bytes + self.sizes[k] > self.budget_bytes and spare:
+                self._evict(spare.pop(0), out)
+            if self.reserved_bytes + self.sizes[k] <= self.budget_bytes:
+                self._start(k, out)
+        pending = [self._loading[k] for k in out.wanted if k in self._loading]
+        if pending and wait and self._pool is not None:
+            t0 = time.perf_counter()
+            wait_futures(pending)
+            out.wait_ms += (time.perf_counter() - t0) * 1e3
+        self._harvest(out)
+        out.held = [k for k in out.wanted if k in self.items]
+        out.left_out = [k for k in out.wanted if k not in self.items]
+        out.loading = sorted(self._loading)
         return out
+
+    def close(self) -> None:
+        """Stop the loader (loads not started are cancelled)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)

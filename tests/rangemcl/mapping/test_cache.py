@@ -45,7 +45,7 @@ def test_the_budget_holds_and_the_farthest_go_first(store):
         r = cache.request(focus, radius_m=25.0)
         dist = tile_distances(store, focus)
         # measured: the bytes of the arrays held
-        held_bytes = sum(sum(a.nbytes for a in item) for item, _n in cache.items.values())
+        held_bytes = sum(sum(a.nbytes for a in item) for item in cache.items.values())
         assert held_bytes == cache.nbytes <= cache.budget_bytes
         assert sorted(r.held) == sorted(cache.items) or set(r.held) <= set(cache.items)
         # evictions at this request: tiles no longer wanted first, each group farthest first
@@ -84,10 +84,9 @@ def test_tiles_in_a_caster_leave_it_when_evicted(store):
     from rangemcl.raycast import RayCaster
 
     caster = RayCaster("cpu", threads=1)
-    prepare, release = caster_tiles(caster)
-    one = prepare(*store.read(0))[1]
-    release(0)
-    cache = TileCache(store, budget_bytes=2 * one, prepare=prepare, release=release)
+    kind = caster_tiles(caster)
+    one = kind.size_of(store.entries[0])
+    cache = TileCache(store, budget_bytes=2 * one, kind=kind)
     down = np.array([[0.0, 0.0, -1.0]])
 
     def hit_at(x, y):
@@ -100,3 +99,62 @@ def test_tiles_in_a_caster_leave_it_when_evicted(store):
     cache.request([[50.0, 50.0]], 0.0)  # a third tile: the farthest of the others goes
     assert hit_at(50.0, 50.0) and hit_at(10.0, 10.0) != hit_at(90.0, 90.0)
     assert len(caster.live_handles) == len(cache.items) == 2
+
+
+def test_the_background_loader_does_not_block_a_request(store):
+    """A slow disk (0.3 s a tile): a request that must not wait returns at once with what is held and
+    reports the rest as left out and loading; the tiles enter at a later request; ``wait`` blocks until
+    they are in. The budget counts the tiles being loaded."""
+    import time
+
+    def slow(s, k):
+        time.sleep(0.3)
+        return s.read(k)
+
+    one = store.entries[0].vertices * 25 + store.entries[0].triangles * 12
+    cache = TileCache(store, budget_bytes=3 * one, read=slow, background=True)
+    try:
+        t0 = time.perf_counter()
+        r = cache.request([[10.0, 10.0]], 5.0, wait=False)
+        assert time.perf_counter() - t0 < 0.1
+        assert r.held == [] and r.left_out == r.wanted != [] and r.loading == r.wanted and r.wait_ms == 0.0
+        assert cache.reserved_bytes == len(r.loading) * one <= cache.budget_bytes
+        time.sleep(0.5)
+        r = cache.request([[10.0, 10.0]], 5.0, wait=False)
+        assert r.held == r.wanted and r.loaded == r.wanted and not r.left_out
+        # elsewhere, waiting: the request returns with the tiles held, the wait measured
+        r = cache.request([[90.0, 90.0]], 5.0, wait=True)
+        assert r.held == r.wanted and r.wait_ms >= 250.0
+        assert r.evicted == [] and len(cache.items) == 2
+        # ahead of the car: the tiles within the prefetch ring load without being waited for, the two
+        # held (no longer wanted) make room
+        r = cache.request([[50.0, 50.0]], 1.0, prefetch_m=15.0, wait=True)
+        ij = [e.ij for e in store.entries]
+        assert set(r.evicted) == {ij.index((0, 0)), ij.index((4, 4))}
+        assert r.wanted == [ij.index((2, 2))] and r.held == r.wanted and len(r.loading) == 2
+        assert cache.peak_bytes <= cache.budget_bytes
+    finally:
+        cache.close()
+
+
+def test_a_broken_tile_is_reported_once_and_left_out(store, tmp_path):
+    """A truncated tile file: the request names it (``broken``, the error line names the file), goes on
+    with the other tiles, and never reads it again."""
+    import shutil
+
+    from rangemcl.mapping.store import TileStore as Store
+
+    d = tmp_path / "map"
+    shutil.copytree(store.map_dir, d)
+    k = [e.ij for e in store.entries].index((1, 1))
+    p = d / store.entries[k].file
+    p.write_bytes(p.read_bytes()[:-10])
+    cache = TileCache(Store.open(d), budget_bytes=10**9, background=True)
+    try:
+        r = cache.request([[30.0, 30.0]], 15.0)
+        assert r.broken == [k] and k in r.left_out and len(r.held) == len(r.wanted) - 1
+        assert store.entries[k].file in cache.broken[k] and "truncated" in cache.broken[k]
+        r = cache.request([[30.0, 30.0]], 15.0)
+        assert r.broken == [] and not r.loading and k in r.left_out
+    finally:
+        cache.close()

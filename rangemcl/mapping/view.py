@@ -1,0 +1,164 @@
+"""The localizer's view of a map within a memory budget (issue 17, ``rangemcl localize --map-memory MB``).
+
+:class:`MapView` opens a map folder of format 2 by its index alone (:class:`~rangemcl.mapping.store.
+TileStore`) and keeps in the ray caster only the tiles near where the particles are, within a byte budget
+(:class:`~rangemcl.mapping.cache.TileCache`: a tile's BVH estimate, about 62 bytes a triangle). Before each
+weighting the filter calls :meth:`MapView.update` with the particles' positions: every tile whose box
+lies within ``radius_m`` (the observation's longest ray) of a particle is wanted, nearest first; tiles no
+longer wanted leave the caster, farthest first, when room is needed; wanted tiles that do not fit are left
+out and counted in the frame log (``map_left_out``). A ray that crosses a tile border hits the
+neighbour tile exactly as it would hit the whole mesh, so while everything wanted fits, the filter's
+results are those of the whole map (tested).
+
+Tiles are read and their BVHs built in a background thread (:class:`~rangemcl.mapping.cache.TileCache`
+with ``background=True``) and enter the caster's scene only inside :meth:`MapView.update`, between two
+weightings. The tiles within ``prefetch_m`` beyond the radius are loaded ahead, so that a car driving
+into new tiles finds them loaded; while tracking (``wait=False``) an update never waits for a tile: a
+tile still loading is left out of that update (``map_left_out``), and ``map_load_ms`` is 0. A search
+(``wait=True``, and every first update) waits for the tiles its particles need, since a particle scored
+against a missing tile would die for it. A broken tile file (missing, truncated, bad checksum) is one
+line on stderr naming the file, and the run goes on without that tile.
+
+What the view does not bound yet (issue 17, next steps): a global search over a map larger than the
+budget sees only the tiles nearest the particles' first cells (no coarse level); the second opinion of
+the lost detector sees only held tiles; the likelihood-field model and a place prior that is not stored
+with the map need the whole mesh (an error says so).
+
+The ground grid, the mapping drive and the index stay whole: 4 bytes per m² of map, 16 bytes a drive
+point, a line per tile.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from rangemcl.errors import InputError
+from rangemcl.mapping.cache import TileCache, caster_tiles
+from rangemcl.mapping.meshmap import _read_ground_and_drive, _tile_keys, read_map_yaml
+from rangemcl.mapping.store import TileStore
+
+
+class MapView:
+    """A map folder of format 2 seen through a memory budget (module docstring).
+
+    Args:
+        map_dir: the map folder.
+        budget_mb: the most the held tiles may take (MB of BVH estimate).
+        caster: the :class:`~rangemcl.raycast.RayCaster` the held tiles live in (tile meshes only).
+        background: load tiles in a background thread (module docstring).
+        prefetch_m: load the tiles this far beyond the update's radius ahead of need.
+    """
+
+    def __init__(
+        self, map_dir, budget_mb: float, caster, *, background: bool = True, prefetch_m: float = 20.0
+    ):
+        map_dir = Path(map_dir)
+        version, doc = read_map_yaml(map_dir)
+        if version < 2:
+            raise InputError(
+                f"{map_dir}: a map of format {version} is read whole; to bound its memory (--map-memory) "
+                f"rewrite it as tiles first: rangemcl map-upgrade {map_dir}"
+            )
+        if not (np.isfinite(budget_mb) and budget_mb > 0):
+            raise InputError(f"--map-memory must be a positive number of MB, got {budget_mb}")
+        self.source_dir = map_dir
+        self.format_version = version
+        self.meta = doc["meta"]
+        self.store = TileStore.open(map_dir)
+        self.ground, self.drive_xy = _read_ground_and_drive(map_dir)
+        self.tiles = self.store.tiles
+        self.tile_size_m = self.store.tile_size_m
+        self.tile_origin_xy = self.store.origin_xy
+        keys = _tile_keys(self.tiles[:, 0], self.tiles[:, 1])
+        self._key_order = np.argsort(keys)
+        self._keys_sorted = keys[self._key_order]
+        self.caster = caster
+        self.budget_bytes = int(budget_mb * 1e6)
+        self.cache = TileCache(
+            self.store, self.budget_bytes, kind=caster_tiles(caster), background=background
+        )
+        self.prefetch_m = float(prefetch_m)
+        self.updates = 0
+        self.longest_wait_ms = 0.0  # the longest an update waited for tiles
+        self.loads = 0  # tiles read over the run
+        self.left_out_updates = 0  # updates at which a wanted tile did not fit
+
+    # --- what the localizer reads of a map ------------------------------------------------------------
+
+    @property
+    def extent(self) -> tuple[float, float, float, float, float, float]:
+        return self.store.extent()
+
+    @property
+    def n_triangles(self) -> int:
+        return self.store.n_triangles
+
+    def tile_at(self, x, y) -> np.ndarray:
+        """Index into ``tiles`` of the tile holding each world ``x, y``; -1 outside every tile (as
+        :meth:`MeshMap.tile_at`)."""
+        x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
+        ok = np.isfinite(x) & np.isfinite(y)
+        i = np.floor((np.where(ok, x, 0.0) - self.tile_origin_xy[0]) / self.tile_size_m)
+        j = np.floor((np.where(ok, y, 0.0) - self.tile_origin_xy[1]) / self.tile_size_m)
+        keys = _tile_keys(i, j)
+        pos = np.clip(np.searchsorted(self._keys_sorted, keys), 0, len(self._keys_sorted) - 1)
+        found = ok & (self._keys_sorted[pos] == keys)
+        return np.where(found, self._key_order[pos], -1).astype(np.int64)
+
+    # --- the budget -----------------------------------------------------------------------------------
+
+    def update(self, xy: np.ndarray, radius_m: float, *, wait: bool = True, cell_m: float = 10.0) -> dict:
+        """Hold the tiles within ``radius_m`` of the positions ``xy`` ``(N, 2)`` (reduced to one focus per
+        ``cell_m`` cell) within the budget and load those ``prefetch_m`` farther; ``wait``: wait for the
+        tiles within the radius that are still loading (else go without them). What it did, for the
+        frame log."""
+        xy = np.asarray(xy, np.float64).reshape(-1, 2)
+        xy = xy[np.isfinite(xy).all(axis=1)]
+        focus = (np.unique(np.floor(xy / cell_m), axis=0) + 0.5) * cell_m
+        r = self.cache.request(
+            focus,
+            radius_m + 0.75 * cell_m,  # a focus stands for its cell
+            prefetch_m=self.prefetch_m,
+            wait=wait or self.updates == 0,
+        )
+        self.updates += 1
+        self.loads += len(r.loaded)
+        self.left_out_updates += bool(r.left_out)
+        self.longest_wait_ms = max(self.longest_wait_ms, r.wait_ms)
+        for k in r.broken:
+            print(f"warning: {self.cache.broken[k]}; localizing without that tile", file=sys.stderr)
+        return dict(
+            map_tiles=len(r.held),
+            map_left_out=len(r.left_out),
+            map_mb=self.cache.nbytes / 1e6,
+            map_load_ms=r.wait_ms,
+        )
+
+    def close(self) -> None:
+        """Stop the background loader."""
+        self.cache.close()
+
+    def summary(self) -> dict:
+        return {
+            "budget_mb": self.budget_bytes / 1e6,
+            "peak_mb": self.cache.peak_bytes / 1e6,
+            "tiles": len(self.store.entries),
+            "tile_loads": self.loads,
+            "longest_wait_ms": self.longest_wait_ms,
+            "broken_tiles": sorted(self.store.entries[k].file for k in self.cache.broken),
+            "updates_with_tiles_left_out": self.left_out_updates,
+        }
+
+    def background_points(self, max_points: int = 150_000) -> np.ndarray:
+        """Non-ground vertices of the whole map, thinned to about ``max_points`` (for the plots), read one
+        tile at a time."""
+        total = max(1, self.store.n_vertices)
+        step = max(1, int(np.ceil(total / max_points)))
+        out = []
+        for k in range(len(self.store.entries)):
+            v, _f, g = self.store.read(k)
+            out.append(v[~g][::step])
+        return np.concatenate(out) if out else np.zeros((0, 3))

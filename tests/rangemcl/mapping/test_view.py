@@ -1,0 +1,115 @@
+"""The localizer within a memory budget (issue 17, ``--map-memory``): with room for every tile it gives the
+whole map's results exactly; with less it holds no more than the budget and logs what it left out; a
+slow disk does not hold up a tracking step; a map of format 1 is refused with the command that fixes it."""
+
+from __future__ import annotations
+
+import csv
+import json
+import time
+
+import numpy as np
+import pytest
+
+from rangemcl.errors import InputError
+from rangemcl.localize import RunOptions, localize_sequence
+from rangemcl.mapping.meshmap import MeshMap
+from rangemcl.mcl import LocalizerSettings
+
+
+@pytest.fixture(scope="module")
+def tiled(small_town_map):
+    """The small town's map cut into 10 m tiles (about 25 tiles), with its mapping drive."""
+    root, map_dir = small_town_map
+    m = MeshMap.load(map_dir)
+    t = MeshMap.from_mesh(m.vertices, m.faces, m.is_ground, tile_size_m=10.0, meta=m.meta)
+    t.drive_xy = m.drive_xy
+    t.save(root / "map10")
+    assert len(t.tiles) >= 12
+    return root / "map_run", root / "map10"
+
+
+def settings(max_range_m: float | None = None) -> LocalizerSettings:
+    s = LocalizerSettings()
+    s.observation.rays = 200
+    if max_range_m is not None:
+        s.observation.max_range_m = max_range_m
+    return s
+
+
+def frames(out) -> list[dict]:
+    with (out / "frames.csv").open() as fh:
+        return list(csv.DictReader(fh))
+
+
+def run(seq, map_dir, out, s, **opts):
+    options = RunOptions(mode="tracking", seed=0, threads=2, plots=False, frames=40, **opts)
+    return localize_sequence(seq, map_dir, out, s, options)
+
+
+def test_with_room_for_every_tile_the_results_are_the_whole_maps(tiled, tmp_path):
+    seq, map_dir = tiled
+    run(seq, map_dir, tmp_path / "whole", settings())
+    summary = run(seq, map_dir, tmp_path / "view", settings(), map_memory_mb=1000.0)
+    assert (tmp_path / "view" / "estimate_kitti.txt").read_bytes() == (
+        tmp_path / "whole" / "estimate_kitti.txt"
+    ).read_bytes()
+    rows = [r for r in frames(tmp_path / "view") if int(r["map_tiles"]) >= 0]  # the updates
+    assert len(rows) > 10 and all(int(r["map_left_out"]) == 0 for r in rows)
+    assert int(rows[0]["map_tiles"]) > 0 and float(rows[0]["map_mb"]) > 0
+    assert all(int(r["map_tiles"]) == -1 for r in frames(tmp_path / "whole"))
+    mem = summary["map_memory"]
+    assert mem["peak_mb"] <= 1000.0 and mem["tile_loads"] >= int(rows[0]["map_tiles"])
+
+
+def test_a_small_budget_holds_and_says_what_it_left_out(tiled, tmp_path):
+    seq, map_dir = tiled
+    whole = run(seq, map_dir, tmp_path / "whole", settings(20.0))
+    held = [int(r["map_tiles"]) for r in frames(tmp_path / "whole")]
+    assert set(held) == {-1}
+    from rangemcl.mapping.store import TileStore
+
+    store = TileStore.open(map_dir)
+    one = 62 * max(e.triangles for e in store.entries) + 12 * max(e.vertices for e in store.entries)
+    budget_mb = 6 * one / 1e6
+    summary = run(seq, map_dir, tmp_path / "small", settings(20.0), map_memory_mb=budget_mb)
+    rows = frames(tmp_path / "small")
+    assert all(float(r["map_mb"]) <= budget_mb + 1e-9 for r in rows if r["map_mb"] != "nan")
+    assert summary["map_memory"]["peak_mb"] <= budget_mb
+    assert any(int(r["map_left_out"]) > 0 for r in rows)
+    assert summary["map_memory"]["updates_with_tiles_left_out"] > 0
+    m = json.loads((tmp_path / "small" / "metrics.json").read_text())
+    assert m["success"] and whole["frames"] == summary["frames"]
+
+
+def test_a_slow_disk_does_not_hold_up_a_tracking_step(tiled, tmp_path, monkeypatch):
+    """Each tile takes 0.15 s to read: the first update waits for its tiles (it has nothing else), every
+    later one goes on with what is loaded (0 ms waited) and logs the tiles still loading as left out."""
+    from rangemcl.mapping.store import TileStore
+
+    read = TileStore.read
+
+    def slow(self, k, **kw):
+        time.sleep(0.15)
+        return read(self, k, **kw)
+
+    monkeypatch.setattr(TileStore, "read", slow)
+    run(seq := tiled[0], tiled[1], tmp_path / "slow", settings(15.0), map_memory_mb=1000.0)
+    rows = [r for r in frames(tmp_path / "slow") if r["map_load_ms"] != "nan"]
+    assert float(rows[0]["map_load_ms"]) >= 150.0
+    assert all(float(r["map_load_ms"]) == 0.0 for r in rows[1:])
+    assert any(int(r["map_left_out"]) > 0 for r in rows[1:])
+    est = np.loadtxt(tmp_path / "slow" / "estimate_kitti.txt")
+    assert np.isfinite(est).all() and len(est) == 40 and seq.is_dir()
+
+
+def test_a_map_of_format_1_is_refused_with_the_fix(small_town_map, tmp_path, save_v1):
+    from rangemcl.mapping.view import MapView
+    from rangemcl.raycast import RayCaster
+
+    _, map_dir = small_town_map
+    save_v1(MeshMap.load(map_dir), tmp_path / "v1")
+    with pytest.raises(InputError, match="rangemcl map-upgrade"):
+        MapView(tmp_path / "v1", 100.0, RayCaster("cpu", 1))
+    with pytest.raises(InputError, match="--map-memory"):
+        MapView(map_dir, -1.0, RayCaster("cpu", 1))
