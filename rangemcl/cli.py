@@ -491,7 +491,8 @@ def localize(
         None,
         metavar="MB",
         help="Hold only the map's tiles near the particles, within this many MB (a map of format 2; "
-        "default: the whole map).",
+        "default: the config's map_memory_mb, else the whole map when it takes under a quarter of the "
+        "memory available, else that quarter).",
     ),
     overwrite: bool = typer.Option(
         False, help="Replace the results that OUT holds (they are kept until this run has results)."

@@ -252,15 +252,10 @@ class LocalizationPipeline:
         self.seq = seq = open_source(self.seq_dir, bag_options=opt.bag)
         if len(seq) == 0:
             raise InputError(f"{seq.root}: the sequence has no scans")
-        self.caster = None
-        if opt.map_memory_mb is not None:  # the tiles near the particles only (rangemcl.mapping.view)
-            from rangemcl.mapping.view import MapView
-            from rangemcl.raycast import RayCaster
+        from rangemcl.mapping.view import open_map  # whole, or the tiles near the particles within a budget
 
-            self.caster = RayCaster(opt.device, opt.threads)
-            self.map = MapView(self.map_dir, opt.map_memory_mb, self.caster)
-        else:
-            self.map = MeshMap.load(self.map_dir)
+        memory = opt.map_memory_mb if opt.map_memory_mb is not None else settings.map_memory_mb
+        self.map, self.caster = open_map(self.map_dir, memory, device=opt.device, threads=opt.threads)
         check_map_frame(seq, self.map)
         self.kiss_poses = None
         if opt.odometry == "kiss-icp":  # computed once: a resumed run reads what the run wrote

@@ -212,6 +212,9 @@ class LocalizerSettings:
     refine: RefineSettings = field(default_factory=RefineSettings)
     init: InitSettings = field(default_factory=InitSettings)
     sensor_height_m: float | None = None  # mounting height; default: the sequence's sensor, else the map's
+    # MB of the map the localizer may hold (its tiles near the particles, rangemcl.mapping.view); default:
+    # the whole map when it takes under a quarter of the memory available, else that quarter
+    map_memory_mb: float | None = None
 
     def check(self, where: str = "settings") -> None:
         """Range checks that the types alone do not give; an InputError names the key."""
@@ -271,6 +274,8 @@ class LocalizerSettings:
             positive["recovery.min_residual_m"] = r.min_residual_m
         if self.sensor_height_m is not None:
             positive["sensor_height_m"] = self.sensor_height_m
+        if self.map_memory_mb is not None:
+            positive["map_memory_mb"] = self.map_memory_mb
         if self.refine.min_hit_height_m is not None:
             positive["refine.min_hit_height_m"] = self.refine.min_hit_height_m
         for key, value in positive.items():

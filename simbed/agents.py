@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from rangemcl.mapping.meshmap import MeshMap
+from rangemcl.mapping.view import open_map
 from rangemcl.mcl import LocalizerSettings, build_localizer
 from rangemcl.rangeimage import RangeImageGeometry
 
@@ -31,7 +32,8 @@ class MCLAgent:
     """rangemcl's localizer as a policy: observation in, pose estimate ``(x, y, yaw)`` out.
 
     Args:
-        mesh_map: a map folder or a loaded :class:`MeshMap`.
+        mesh_map: a map folder (held whole, or within ``settings.map_memory_mb``: see
+            :func:`rangemcl.mapping.view.open_map`) or a loaded :class:`MeshMap`.
         geometry: the sensor's range-image geometry (``env.unwrapped.geometry``).
         settings: localizer settings (defaults: rangemcl's).
         sensor_height_m: the sensor's height above the ground.
@@ -49,10 +51,21 @@ class MCLAgent:
         device: str = "cpu",
         threads: int | None = None,
     ):
-        self.map = mesh_map if isinstance(mesh_map, MeshMap) else MeshMap.load(mesh_map)
+        caster = None
+        if isinstance(mesh_map, MeshMap):
+            self.map = mesh_map
+        else:  # whole, or within settings.map_memory_mb (rangemcl.mapping.view)
+            memory = settings.map_memory_mb if settings is not None else None
+            self.map, caster = open_map(mesh_map, memory, device=device, threads=threads)
         self.geometry = geometry
         self.filter = build_localizer(
-            self.map, settings, seed=seed, device=device, threads=threads, sensor_height_m=sensor_height_m
+            self.map,
+            settings,
+            seed=seed,
+            device=device,
+            threads=threads,
+            sensor_height_m=sensor_height_m,
+            caster=caster,
         )
         self.last_info = None
 

@@ -30,6 +30,7 @@ point, a line per tile.
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -39,6 +40,42 @@ from rangemcl.errors import InputError
 from rangemcl.mapping.cache import TileCache, caster_tiles
 from rangemcl.mapping.meshmap import _read_ground_and_drive, _tile_keys, read_map_yaml
 from rangemcl.mapping.store import TileStore
+
+# What the localizer holds of a whole map (MeshMap + one BVH) per triangle: town_large's 6.7 M triangles
+# took 1.10 GB in `rangemcl localize` (README, performance)
+WHOLE_MAP_BYTES_PER_TRIANGLE = 165.0
+
+
+def available_memory_bytes() -> int:
+    """The memory available to a new process (``MemAvailable``), else the physical memory."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+
+
+def open_map(map_dir, memory_mb: float | None = None, *, device: str = "cpu", threads: int | None = None):
+    """The map as the localizer holds it: ``(map, caster)``.
+
+    ``memory_mb`` set: a :class:`MapView` within that budget and its own ray caster. None: the whole map
+    (a :class:`~rangemcl.mapping.meshmap.MeshMap`, caster None: the localizer builds one) when it takes
+    under a quarter of the memory available (about 165 bytes a triangle), else a view within that quarter
+    (a map of format 1 is then loaded whole all the same: ``rangemcl map-upgrade`` makes it tiles)."""
+    from rangemcl.mapping.meshmap import MeshMap
+    from rangemcl.raycast import RayCaster
+
+    map_dir = Path(map_dir)
+    if memory_mb is None:
+        version, _doc = read_map_yaml(map_dir)
+        quarter = available_memory_bytes() / 4
+        if version < 2 or TileStore.open(map_dir).n_triangles * WHOLE_MAP_BYTES_PER_TRIANGLE <= quarter:
+            return MeshMap.load(map_dir), None
+        memory_mb = quarter / 1e6
+    caster = RayCaster(device, threads)
+    return MapView(map_dir, memory_mb, caster), caster
 
 
 class MapView:

@@ -113,3 +113,40 @@ def test_a_map_of_format_1_is_refused_with_the_fix(small_town_map, tmp_path, sav
         MapView(tmp_path / "v1", 100.0, RayCaster("cpu", 1))
     with pytest.raises(InputError, match="--map-memory"):
         MapView(map_dir, -1.0, RayCaster("cpu", 1))
+
+
+def test_the_default_is_sized_from_the_machine(tiled, monkeypatch):
+    """No budget given: the whole map when it takes under a quarter of the memory available, else a view
+    within that quarter; a budget in the settings (the config's ``map_memory_mb``) is a view."""
+    from rangemcl.mapping import view
+    from rangemcl.mapping.store import TileStore
+
+    _, map_dir = tiled
+    m, caster = view.open_map(map_dir)
+    assert isinstance(m, MeshMap) and caster is None
+    need = TileStore.open(map_dir).n_triangles * view.WHOLE_MAP_BYTES_PER_TRIANGLE
+    monkeypatch.setattr(view, "available_memory_bytes", lambda: int(2 * need))
+    m, caster = view.open_map(map_dir)
+    try:
+        assert isinstance(m, view.MapView) and m.budget_bytes == pytest.approx(need / 2, rel=1e-6)
+        assert caster is m.caster
+    finally:
+        m.close()
+    s = LocalizerSettings()
+    s.map_memory_mb = 0.0
+    with pytest.raises(InputError, match="map_memory_mb"):
+        s.check()
+
+
+def test_the_agent_takes_the_budget_from_its_settings(tiled):
+    from rangemcl.mapping.view import MapView
+    from rangemcl.rangeimage import RangeImageGeometry
+    from rangemcl.sensors import load_spec
+    from simbed.agents import MCLAgent
+
+    _, map_dir = tiled
+    s = settings()
+    s.map_memory_mb = 5.0
+    agent = MCLAgent(map_dir, RangeImageGeometry.for_spec(load_spec("os1-64")), settings=s, threads=1)
+    assert isinstance(agent.map, MapView) and agent.map.budget_bytes == 5_000_000
+    agent.map.close()
