@@ -403,6 +403,32 @@ def map_upgrade(map_dir: Path = typer.Argument(..., help="A map folder.")) -> No
     )
 
 
+@app.command("map-coarse")
+def map_coarse(
+    map_dir: Path = typer.Argument(..., help="A map folder (format 2)."),
+    ratio: float = typer.Option(0.05, help="Share of each tile's triangles the coarse level keeps."),
+) -> None:
+    """Add a coarse level to a map: each tile decimated to RATIO of its triangles (coarse/I_J.npz). A
+    localizer within a memory budget (--map-memory) holds the farther tiles at this level where the tiles
+    in range do not all fit at full resolution. The index is rewritten last: a run stopped part-way leaves
+    the map as it was."""
+    from rangemcl.errors import InputError
+    from rangemcl.mapping.coarse import add_coarse_level
+    from rangemcl.mapping.meshmap import read_map_yaml
+
+    version, _doc = read_map_yaml(map_dir)
+    if version < 2:
+        raise InputError(
+            f"{map_dir}: a map of format {version} has no tiles; first: rangemcl map-upgrade {map_dir}"
+        )
+    r = add_coarse_level(map_dir, ratio)
+    typer.echo(
+        f"{map_dir}: coarse level of {r['tiles']} tiles, {r['coarse_triangles']:,} of {r['triangles']:,} "
+        f"triangles ({100 * r['coarse_share']:.1f} %), {r['coarse_bytes_on_disk'] / 1e6:.1f} MB, "
+        f"{r['seconds']:.1f} s"
+    )
+
+
 @app.command("map-quality")
 def map_quality_cmd(
     map_dir: Path = typer.Argument(..., help="A map folder."),

@@ -58,7 +58,7 @@ from rangemcl.viz import RunViewer, check_rrd_path, rerun_module
 FRAME_COLUMNS = (
     "frame,time_s,x,y,yaw,particles,converged,updated,resampled,skipped_scan,recovered,"
     "best_residual_m,seconds,hypotheses,evidence_nats,inliers,vetoed,refined,refine_shift_m,"
-    "odometry_scale,gyro_bias_deg_s,map_tiles,map_left_out,map_mb,map_load_ms"
+    "odometry_scale,gyro_bias_deg_s,map_tiles,map_left_out,map_coarse,map_mb,map_load_ms"
 )
 
 
@@ -626,7 +626,7 @@ class LocalizationPipeline:
             f"{int(info.updated)},{int(info.resampled)},{int(info.skipped_scan)},{int(info.recovered)},"
             f"{info.best_residual_m:.4f},{info.seconds:.4f},{info.hypotheses},{info.evidence_nats:.3f},"
             f"{info.inliers:.3f},{int(info.vetoed)},{info.refined},{info.refine_shift_m:.4f},"
-            f"{info.odometry_scale:.5f},{info.gyro_bias_deg_s:.4f},{info.map_tiles},{info.map_left_out},"
+            f"{info.odometry_scale:.5f},{info.gyro_bias_deg_s:.4f},{info.map_tiles},{info.map_left_out},{info.map_coarse},"
             f"{info.map_mb:.2f},{info.map_load_ms:.1f}\n"
         )
 

@@ -85,7 +85,8 @@ class StepInfo:
     odometry_scale: float = math.nan  # the calibration's current translation scale ...
     gyro_bias_deg_s: float = math.nan  # ... and gyro bias
     map_tiles: int = -1  # a map within a memory budget (MapView): tiles held at this update (-1: whole map)
-    map_left_out: int = 0  # ... tiles wanted but left out (they did not fit the budget)
+    map_left_out: int = 0  # ... tiles wanted but left out (no room in the budget, or still loading)
+    map_coarse: int = 0  # ... tiles held at the coarse level (no room for them at full resolution)
     map_mb: float = math.nan  # ... MB the held tiles take
     map_load_ms: float = math.nan  # ... milliseconds this update waited for tiles to load
 

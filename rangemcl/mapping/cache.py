@@ -80,13 +80,17 @@ def caster_tiles(caster, bytes_per_triangle: float = 62.0, bytes_per_vertex: flo
     )
 
 
+FULL, COARSE = 0, 1  # a tile's levels
+
+
 @dataclass
 class Request:
     """What one :meth:`TileCache.request` did."""
 
     wanted: list[int]  # tiles within the radius, nearest first
-    held: list[int]  # ... of them in memory now
+    held: list[int]  # ... of them in memory now (at either level)
     left_out: list[int]  # ... of them not held: no room in the budget, still loading, or broken
+    coarse: list[int] = field(default_factory=list)  # ... of the held, those at the coarse level
     loading: list[int] = field(default_factory=list)  # tiles (wanted or ahead) the loader is working on
     loaded: list[int] = field(default_factory=list)  # entered the cache at this request
     evicted: list[int] = field(default_factory=list)  # dropped at this request, in order
@@ -97,12 +101,19 @@ class Request:
 class TileCache:
     """Tiles in memory within a byte budget (module docstring).
 
+    Where the store has a coarse level (:mod:`rangemcl.mapping.coarse`) and the wanted tiles do not all
+    fit at full resolution, the farther ones are held at the coarse level: every wanted tile is given its
+    coarse level first, then the nearest are raised to full resolution while the budget allows. Without a
+    coarse level the wanted tiles are taken at full resolution nearest first while they fit.
+
     Args:
         store: the map's tiles.
         budget_bytes: the most the cache holds and loads at once, as ``kind.size_of`` counts it.
         kind: how a tile is held (:class:`TileKind`); default :func:`tile_arrays`.
-        read: ``(store, k) -> (vertices, faces, is_ground)``; default ``store.read(k)`` (tests slow it).
+        read: ``(store, k, coarse) -> (vertices, faces, is_ground)``; default ``store.read(k, coarse=...)``
+            (tests slow it).
         background: load in a worker thread (module docstring).
+        coarse: use the store's coarse level where the budget is short (when the store has one).
     """
 
     def __init__(
@@ -111,114 +122,168 @@ class TileCache:
         budget_bytes: int,
         *,
         kind: TileKind | None = None,
-        read: Callable[[TileStore, int], tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None,
+        read: Callable[[TileStore, int, bool], tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None,
         background: bool = False,
+        coarse: bool = True,
     ):
         if budget_bytes <= 0:
             raise ValueError(f"budget_bytes must be positive, got {budget_bytes}")
         self.store = store
         self.budget_bytes = int(budget_bytes)
         self.kind = kind or tile_arrays()
-        self.read = read or (lambda s, k: s.read(k))
-        self.sizes = [int(self.kind.size_of(e)) for e in store.entries]
+        self.read = read or (lambda s, k, c: s.read(k, coarse=c))
+        self.use_coarse = bool(coarse and store.has_coarse)
+        self.sizes = [
+            (int(self.kind.size_of(e)), int(self.kind.size_of(e.coarse)) if self.use_coarse else None)
+            for e in store.entries
+        ]
         self.items: dict[int, Any] = {}  # tile index -> held item
+        self.levels: dict[int, int] = {}  # tile index -> the level held
         self.broken: dict[int, str] = {}  # tile index -> the error line; never read again
         self.peak_bytes = 0
-        self._loading: dict[int, Future] = {}
-        self._dropped: list[tuple[int, Future]] = []  # evicted while loading: their bytes count until done
+        self._loading: dict[int, tuple[int, Future]] = {}  # tile index -> (level, load)
+        self._dropped: list[tuple[int, int, Future]] = []  # dropped while loading: bytes count until done
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="tiles") if background else None
+
+    def size(self, k: int, level: int = FULL) -> int:
+        return self.sizes[k][level]
 
     @property
     def nbytes(self) -> int:
         """Bytes of the tiles held."""
-        return sum(self.sizes[k] for k in self.items)
+        return sum(self.sizes[k][lvl] for k, lvl in self.levels.items())
 
     @property
     def reserved_bytes(self) -> int:
         """Bytes of the tiles held and of those being loaded (what the budget bounds)."""
-        self._dropped = [(k, fu) for k, fu in self._dropped if not fu.done()]
-        return (
-            self.nbytes
-            + sum(self.sizes[k] for k in self._loading)
-            + sum(self.sizes[k] for k, _ in self._dropped)
-        )
+        self._dropped = [d for d in self._dropped if not d[2].done()]
+        loading = sum(self.sizes[k][lvl] for k, (lvl, _fu) in self._loading.items())
+        return self.nbytes + loading + sum(self.sizes[k][lvl] for k, lvl, _fu in self._dropped)
 
     def get(self, k: int):
         """The held item of tile ``k``, else None."""
         return self.items.get(k)
 
-    def _load(self, k: int):
-        v, f, g = self.read(self.store, k)
+    def _load(self, k: int, level: int):
+        v, f, g = self.read(self.store, k, level == COARSE)
         return self.kind.prepare(v, f, g)
 
-    def _start(self, k: int, out: Request) -> None:
+    def _start(self, k: int, level: int, out: Request) -> None:
         if self._pool is None:
             fu: Future = Future()
             t0 = time.perf_counter()
             try:
-                fu.set_result(self._load(k))
+                fu.set_result(self._load(k, level))
             except InputError as e:
                 fu.set_exception(e)
             out.wait_ms += (time.perf_counter() - t0) * 1e3
         else:
-            fu = self._pool.submit(self._load, k)
-        self._loading[k] = fu
+            fu = self._pool.submit(self._load, k, level)
+        self._loading[k] = (level, fu)
         self.peak_bytes = max(self.peak_bytes, self.reserved_bytes)
+
+    def _release(self, k: int) -> None:
+        held = self.items.pop(k)
+        self.levels.pop(k)
+        if self.kind.release is not None:
+            self.kind.release(held)
 
     def _evict(self, k: int, out: Request) -> None:
         if k in self.items:
-            held = self.items.pop(k)
-            if self.kind.release is not None:
-                self.kind.release(held)
-        else:
-            fu = self._loading.pop(k)
-            if not fu.cancel():
-                self._dropped.append((k, fu))
+            self._release(k)
         out.evicted.append(k)
 
+    def _drop_load(self, k: int) -> None:
+        level, fu = self._loading.pop(k)
+        if not fu.cancel():
+            self._dropped.append((k, level, fu))
+
     def _harvest(self, out: Request) -> None:
-        """Loads that have finished enter the cache (on this thread)."""
-        for k in [k for k, fu in self._loading.items() if fu.done()]:
-            fu = self._loading.pop(k)
+        """Loads that have finished enter the cache (on this thread); a tile raised to full resolution
+        leaves its coarse level."""
+        for k in [k for k, (_lvl, fu) in self._loading.items() if fu.done()]:
+            level, fu = self._loading.pop(k)
             try:
                 item = fu.result()
             except InputError as e:
                 self.broken[k] = str(e)
                 out.broken.append(k)
                 continue
+            if k in self.items:
+                self._release(k)
             self.items[k] = self.kind.install(item)
+            self.levels[k] = level
             out.loaded.append(k)
+
+    def _plan(self, near: list[int], ahead: list[int]) -> dict[int, int]:
+        """The level each tile should be held at: ``near`` (within the radius, nearest first) within the
+        budget, then ``ahead`` (the prefetch ring) in what is left."""
+        target: dict[int, int] = {}
+        left = self.budget_bytes
+        if self.use_coarse:
+            for k in near:  # every wanted tile at the coarse level, while they fit ...
+                if self.size(k, COARSE) <= left:
+                    target[k] = COARSE
+                    left -= self.size(k, COARSE)
+            for k in near:  # ... then the nearest raised to full resolution
+                if k in target and self.size(k) - self.size(k, COARSE) <= left:
+                    target[k] = FULL
+                    left -= self.size(k) - self.size(k, COARSE)
+        else:
+            for k in near:
+                if self.size(k) <= left:
+                    target[k] = FULL
+                    left -= self.size(k)
+        for k in ahead:
+            for level in (FULL, COARSE) if self.use_coarse else (FULL,):
+                if self.size(k, level) <= left:
+                    target[k] = level
+                    left -= self.size(k, level)
+                    break
+        return target
 
     def request(self, focus_xy, radius_m: float, *, prefetch_m: float = 0.0, wait: bool = True) -> Request:
         """Hold the tiles within ``radius_m`` of the focus points and load those within ``radius_m +
-        prefetch_m``, nearest first, within the budget: room for a tile is made by evicting, farthest first,
-        the tiles no longer wanted and then the wanted ones farther than it; a tile that still does not fit
-        is left out. In the background, ``wait`` blocks until the wanted tiles' loads have finished."""
+        prefetch_m``, within the budget (the class docstring says at which level); tiles no longer wanted
+        stay until their room is needed, then go farthest first, before the wanted tiles that the plan
+        leaves out or holds at another level. In the background, ``wait`` blocks until the wanted tiles'
+        loads have finished."""
         out = Request(wanted=[], held=[], left_out=[])
         self._harvest(out)
         dist = tile_distances(self.store, focus_xy)
-        order = np.argsort(dist, kind="stable")
-        ahead = [int(k) for k in order if dist[k] <= radius_m + prefetch_m and int(k) not in self.broken]
-        want = set(ahead)
-        out.wanted = [k for k in (int(k) for k in order) if dist[k] <= radius_m]
-        for k in ahead:
-            if k in self.items or k in self._loading or k in out.evicted:
+        order = [int(k) for k in np.argsort(dist, kind="stable")]
+        out.wanted = [k for k in order if dist[k] <= radius_m]
+        usable = [k for k in order if dist[k] <= radius_m + prefetch_m and k not in self.broken]
+        target = self._plan(
+            [k for k in usable if dist[k] <= radius_m], [k for k in usable if dist[k] > radius_m]
+        )
+        want = set(usable)
+        for k in [k for k, (lvl, _fu) in self._loading.items() if target.get(k) != lvl]:
+            self._drop_load(k)
+        # loads nearest first; room is made by evicting what the plan does not hold at its level, tiles no
+        # longer wanted first, farthest first (a coarse tile waiting to be raised stays while it can)
+        for k in sorted(target, key=lambda j: dist[j]):
+            level = target[k]
+            if self.levels.get(k) == level or (k in self._loading and self._loading[k][0] == level):
                 continue
             spare = sorted(
-                (j for j in [*self.items, *self._loading] if j not in want or dist[j] > dist[k]),
+                (j for j in self.items if j != k and target.get(j) != self.levels[j]),
                 key=lambda j: (j in want, -dist[j]),
             )
-            while self.reserved_bytes + self.sizes[k] > self.budget_bytes and spare:
+            while self.reserved_bytes + self.size(k, level) > self.budget_bytes and spare:
                 self._evict(spare.pop(0), out)
-            if self.reserved_bytes + self.sizes[k] <= self.budget_bytes:
-                self._start(k, out)
-        pending = [self._loading[k] for k in out.wanted if k in self._loading]
+            if self.reserved_bytes + self.size(k, level) > self.budget_bytes and k in self.items:
+                self._evict(k, out)  # no room to keep the coarse level while the full one loads
+            if self.reserved_bytes + self.size(k, level) <= self.budget_bytes:
+                self._start(k, level, out)
+        pending = [self._loading[k][1] for k in out.wanted if k in self._loading]
         if pending and wait and self._pool is not None:
             t0 = time.perf_counter()
             wait_futures(pending)
             out.wait_ms += (time.perf_counter() - t0) * 1e3
         self._harvest(out)
         out.held = [k for k in out.wanted if k in self.items]
+        out.coarse = [k for k in out.held if self.levels[k] == COARSE]
         out.left_out = [k for k in out.wanted if k not in self.items]
         out.loading = sorted(self._loading)
         return out

@@ -512,7 +512,7 @@ def write_map_files(
 ) -> dict:
     """After the tiles and ``tiles.json``: ``ground.npz``, ``drive.npz`` and ``map.yaml`` (last, format 2),
     then the files of an older map in the folder are removed. Returns the counts written."""
-    from rangemcl.mapping.store import INDEX_NAME, TILE_DIR
+    from rangemcl.mapping.store import COARSE_DIR, INDEX_NAME, TILE_DIR
 
     atomic_write(
         map_dir / "ground.npz",
@@ -540,10 +540,11 @@ def write_map_files(
     # the map is complete: what an older map left here goes
     for name in ("mesh.ply", "tiles.npz"):
         (map_dir / name).unlink(missing_ok=True)
-    listed = {e.file for e in entries}
-    for path in (map_dir / TILE_DIR).glob("*.npz"):
-        if f"{TILE_DIR}/{path.name}" not in listed:
-            path.unlink(missing_ok=True)
+    listed = {e.file for e in entries} | {e.coarse.file for e in entries if e.coarse is not None}
+    for folder in (TILE_DIR, COARSE_DIR):
+        for path in (map_dir / folder).glob("*.npz"):
+            if f"{folder}/{path.name}" not in listed:
+                path.unlink(missing_ok=True)
     return counts
 
 

@@ -44,6 +44,7 @@ INDEX_NAME = "tiles.json"
 INDEX_FORMAT = "rangemcl-tile-index"
 STORE_VERSION = 2
 TILE_DIR = "tiles"
+COARSE_DIR = "coarse"  # the coarse level: a decimated copy of each tile (rangemcl.mapping.coarse)
 
 
 @dataclass(frozen=True)
@@ -58,9 +59,10 @@ class TileEntry:
     bounds: tuple[float, float, float, float, float, float]  # xmin, ymin, zmin, xmax, ymax, zmax
     bytes: int
     sha256: str
+    coarse: TileEntry | None = None  # the tile's coarse level, when the map has one
 
     def as_json(self) -> dict:
-        return {
+        doc = {
             "ij": list(self.ij),
             "file": self.file,
             "vertices": self.vertices,
@@ -70,11 +72,29 @@ class TileEntry:
             "bytes": self.bytes,
             "sha256": self.sha256,
         }
+        if self.coarse is not None:
+            doc["coarse"] = {k: v for k, v in self.coarse.as_json().items() if k != "ij"}
+        return doc
+
+    @classmethod
+    def from_json(cls, t: dict, ij=None) -> TileEntry:
+        ij = t["ij"] if ij is None else ij
+        return cls(
+            ij=(int(ij[0]), int(ij[1])),
+            file=str(t["file"]),
+            vertices=int(t["vertices"]),
+            triangles=int(t["triangles"]),
+            ground_vertices=int(t["ground_vertices"]),
+            bounds=tuple(float(x) for x in t["bounds"]),
+            bytes=int(t["bytes"]),
+            sha256=str(t["sha256"]),
+            coarse=None if t.get("coarse") is None else cls.from_json(t["coarse"], ij),
+        )
 
 
-def tile_file(i: int, j: int) -> str:
-    """The file of tile (i, j), relative to the map folder."""
-    return f"{TILE_DIR}/{int(i)}_{int(j)}.npz"
+def tile_file(i: int, j: int, *, coarse: bool = False) -> str:
+    """The file of tile (i, j) (or of its coarse level), relative to the map folder."""
+    return f"{COARSE_DIR if coarse else TILE_DIR}/{int(i)}_{int(j)}.npz"
 
 
 def _sha256(path: Path) -> str:
@@ -85,15 +105,16 @@ def _sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def write_tile(map_dir, ij, vertices, faces, is_ground) -> TileEntry:
-    """Write tile ``ij``'s mesh into ``map_dir`` (atomically) and return its index entry."""
+def write_tile(map_dir, ij, vertices, faces, is_ground, *, coarse: bool = False) -> TileEntry:
+    """Write tile ``ij``'s mesh (or its coarse level) into ``map_dir`` (atomically) and return its index
+    entry."""
     map_dir = Path(map_dir)
     v = np.ascontiguousarray(vertices, np.float64).reshape(-1, 3)
     f = np.ascontiguousarray(faces, np.int32).reshape(-1, 3)
     g = np.ascontiguousarray(is_ground, bool).reshape(-1)
     if len(g) != len(v) or len(f) == 0:
         raise ValueError(f"tile {ij}: {len(v)} vertices, {len(g)} labels, {len(f)} faces")
-    name = tile_file(*ij)
+    name = tile_file(*ij, coarse=coarse)
     path = map_dir / name
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(path, lambda fh: savez_stable(fh, compressed=True, vertices=v, faces=f, is_ground=g))
@@ -148,19 +169,7 @@ class TileStore:
         try:
             size = float(doc["tile_size_m"])
             origin = [float(x) for x in doc["tile_origin_xy"]]
-            entries = [
-                TileEntry(
-                    ij=(int(t["ij"][0]), int(t["ij"][1])),
-                    file=str(t["file"]),
-                    vertices=int(t["vertices"]),
-                    triangles=int(t["triangles"]),
-                    ground_vertices=int(t["ground_vertices"]),
-                    bounds=tuple(float(x) for x in t["bounds"]),
-                    bytes=int(t["bytes"]),
-                    sha256=str(t["sha256"]),
-                )
-                for t in doc["tiles"]
-            ]
+            entries = [TileEntry.from_json(t) for t in doc["tiles"]]
         except (KeyError, TypeError, ValueError, IndexError) as err:
             raise InputError(f"{path}: malformed tile index: {type(err).__name__} {err}") from None
         if not (math.isfinite(size) and size > 0) or len(origin) != 2:
@@ -170,7 +179,7 @@ class TileStore:
         ij = [e.ij for e in entries]
         if ij != sorted(set(ij)):
             raise InputError(f"{path}: tiles must be listed once each, sorted by (i, j)")
-        for e in entries:
+        for e in [*entries, *(e.coarse for e in entries if e.coarse is not None)]:
             if len(e.bounds) != 6 or Path(e.file).is_absolute() or ".." in Path(e.file).parts:
                 raise InputError(f"{path}: tile {e.ij}: bad bounds or file name {e.file!r}")
         return cls(path.parent, size, origin, entries)
@@ -196,11 +205,23 @@ class TileStore:
         b = np.array([e.bounds for e in self.entries])
         return (*(float(x) for x in b[:, :3].min(axis=0)), *(float(x) for x in b[:, 3:].max(axis=0)))
 
-    def read(self, k: int, *, verify: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Tile ``k`` (index into ``entries``): ``(vertices float64 (V, 3), faces int32 (F, 3),
-        is_ground bool (V,))``, checked against its index entry (counts, sha256 when ``verify``, face
-        indices, finite vertices, the centroid rule); any problem is an InputError naming the file."""
+    @property
+    def has_coarse(self) -> bool:
+        """Whether every tile has a coarse level."""
+        return all(e.coarse is not None for e in self.entries)
+
+    def read(
+        self, k: int, *, verify: bool = True, coarse: bool = False
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Tile ``k`` (index into ``entries``), or its coarse level: ``(vertices float64 (V, 3), faces int32
+        (F, 3), is_ground bool (V,))``, checked against its index entry (counts, sha256 when ``verify``,
+        face indices, finite vertices, the centroid rule; a coarse level's faces may straddle the border
+        by a little); any problem is an InputError naming the file."""
         e = self.entries[k]
+        if coarse:
+            if e.coarse is None:
+                raise InputError(f"{self.map_dir}: tile {e.ij} has no coarse level (rangemcl map-coarse)")
+            e = e.coarse
         path = self.map_dir / e.file
         try:
             size = path.stat().st_size
@@ -233,6 +254,8 @@ class TileStore:
             raise InputError(f"{path}: tile {e.ij} has NaN or infinite vertices")
         if len(f) and (f.min() < 0 or f.max() >= len(v)):
             raise InputError(f"{path}: tile {e.ij}: face indices out of range 0..{len(v) - 1}")
+        if coarse:
+            return v, f, g
         tri = v[f, :2]
         centroid = (tri[:, 0] + tri[:, 1] + tri[:, 2]) / 3.0
         ij = np.floor((centroid - self.origin_xy) / self.tile_size_m)

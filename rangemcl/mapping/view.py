@@ -19,8 +19,11 @@ tile still loading is left out of that update (``map_left_out``), and ``map_load
 against a missing tile would die for it. A broken tile file (missing, truncated, bad checksum) is one
 line on stderr naming the file, and the run goes on without that tile.
 
-What the view does not bound yet (issue 17, next steps): a global search over a map larger than the
-budget sees only the tiles nearest the particles' first cells (no coarse level); the second opinion of
+Where the tiles in range do not all fit at full resolution and the map has a coarse level (``rangemcl
+map-coarse``: each tile decimated to 5 %), the nearest tiles are held at full resolution and the farther
+ones coarse (``map_coarse`` in the frame log); without one, the farther tiles are left out.
+
+What the view does not bound yet (issue 17, next steps): the second opinion of
 the lost detector sees only held tiles; the likelihood-field model and a place prior that is not stored
 with the map need the whole mesh (an error says so).
 
@@ -30,6 +33,7 @@ point, a line per tile.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 from pathlib import Path
@@ -78,6 +82,21 @@ def open_map(map_dir, memory_mb: float | None = None, *, device: str = "cpu", th
     return MapView(map_dir, memory_mb, caster), caster
 
 
+def return_freed_memory() -> None:
+    """Ask glibc to serve allocations from 1 MiB up by mmap, so that an evicted tile's memory goes back to
+    the system (with the default threshold, which grows with the largest block freed, evicted tiles left
+    the resident size at 3x the live bytes; with 1 MiB at 1.3x: ``docs/design/issue17_notes.md``). A
+    no-op where glibc is absent."""
+    import ctypes
+    import ctypes.util
+
+    name = ctypes.util.find_library("c")
+    if not name or not sys.platform.startswith("linux"):
+        return
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(name).mallopt(-3, 1 << 20)  # M_MMAP_THRESHOLD
+
+
 class MapView:
     """A map folder of format 2 seen through a memory budget (module docstring).
 
@@ -87,10 +106,19 @@ class MapView:
         caster: the :class:`~rangemcl.raycast.RayCaster` the held tiles live in (tile meshes only).
         background: load tiles in a background thread (module docstring).
         prefetch_m: load the tiles this far beyond the update's radius ahead of need.
+        coarse: where the tiles in range do not all fit, hold the farther ones at the map's coarse level
+            (``rangemcl map-coarse``), if it has one.
     """
 
     def __init__(
-        self, map_dir, budget_mb: float, caster, *, background: bool = True, prefetch_m: float = 20.0
+        self,
+        map_dir,
+        budget_mb: float,
+        caster,
+        *,
+        background: bool = True,
+        prefetch_m: float = 20.0,
+        coarse: bool = True,
     ):
         map_dir = Path(map_dir)
         version, doc = read_map_yaml(map_dir)
@@ -101,6 +129,7 @@ class MapView:
             )
         if not (np.isfinite(budget_mb) and budget_mb > 0):
             raise InputError(f"--map-memory must be a positive number of MB, got {budget_mb}")
+        return_freed_memory()
         self.source_dir = map_dir
         self.format_version = version
         self.meta = doc["meta"]
@@ -115,12 +144,13 @@ class MapView:
         self.caster = caster
         self.budget_bytes = int(budget_mb * 1e6)
         self.cache = TileCache(
-            self.store, self.budget_bytes, kind=caster_tiles(caster), background=background
+            self.store, self.budget_bytes, kind=caster_tiles(caster), background=background, coarse=coarse
         )
         self.prefetch_m = float(prefetch_m)
         self.updates = 0
         self.longest_wait_ms = 0.0  # the longest an update waited for tiles
         self.loads = 0  # tiles read over the run
+        self.coarse_updates = 0  # updates at which a wanted tile was held at the coarse level
         self.left_out_updates = 0  # updates at which a wanted tile did not fit
 
     # --- what the localizer reads of a map ------------------------------------------------------------
@@ -164,12 +194,14 @@ class MapView:
         self.updates += 1
         self.loads += len(r.loaded)
         self.left_out_updates += bool(r.left_out)
+        self.coarse_updates += bool(r.coarse)
         self.longest_wait_ms = max(self.longest_wait_ms, r.wait_ms)
         for k in r.broken:
             print(f"warning: {self.cache.broken[k]}; localizing without that tile", file=sys.stderr)
         return dict(
             map_tiles=len(r.held),
             map_left_out=len(r.left_out),
+            map_coarse=len(r.coarse),
             map_mb=self.cache.nbytes / 1e6,
             map_load_ms=r.wait_ms,
         )
@@ -187,6 +219,8 @@ class MapView:
             "longest_wait_ms": self.longest_wait_ms,
             "broken_tiles": sorted(self.store.entries[k].file for k in self.cache.broken),
             "updates_with_tiles_left_out": self.left_out_updates,
+            "updates_with_coarse_tiles": self.coarse_updates,
+            "coarse_level": self.cache.use_coarse,
         }
 
     def background_points(self, max_points: int = 150_000) -> np.ndarray:

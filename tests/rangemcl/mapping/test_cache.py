@@ -64,9 +64,9 @@ def test_the_budget_holds_and_the_farthest_go_first(store):
 def test_a_wanted_tile_is_not_read_again(store):
     reads = []
 
-    def read(s, k):
+    def read(s, k, coarse):
         reads.append(k)
-        return s.read(k)
+        return s.read(k, coarse=coarse)
 
     cache = TileCache(store, budget_bytes=10**9, read=read)
     first = cache.request([[50.0, 50.0]], 15.0)
@@ -107,9 +107,9 @@ def test_the_background_loader_does_not_block_a_request(store):
     they are in. The budget counts the tiles being loaded."""
     import time
 
-    def slow(s, k):
+    def slow(s, k, coarse):
         time.sleep(0.3)
-        return s.read(k)
+        return s.read(k, coarse=coarse)
 
     one = store.entries[0].vertices * 25 + store.entries[0].triangles * 12
     cache = TileCache(store, budget_bytes=3 * one, read=slow, background=True)
@@ -158,3 +158,75 @@ def test_a_broken_tile_is_reported_once_and_left_out(store, tmp_path):
         assert r.broken == [] and not r.loading and k in r.left_out
     finally:
         cache.close()
+
+
+@pytest.fixture(scope="module")
+def wavy(tmp_path_factory):
+    """A 5 x 5 grid of 20 m tiles of a wavy surface (z = 0.5 sin(x/3) cos(y/4), 2 x 1,600 triangles a
+    tile), with its coarse level."""
+    from rangemcl.mapping.coarse import add_coarse_level
+
+    v, f = meshgen.grid_patch((0.0, 0.0, 0.0), (100.0, 0, 0), (0, 100.0, 0), 200, 200)
+    v = v.copy()
+    v[:, 2] = 0.5 * np.sin(v[:, 0] / 3.0) * np.cos(v[:, 1] / 4.0)
+    d = tmp_path_factory.mktemp("wavy") / "map"
+    MeshMap.from_mesh(v, f, np.ones(len(v), bool), tile_size_m=20.0).save(d)
+    report = add_coarse_level(d)
+    assert report["tiles"] == 25 and 0.04 < report["coarse_share"] < 0.06
+    return TileStore.open(d), v, f
+
+
+def test_the_coarse_level_keeps_each_tiles_footprint(wavy):
+    """Decimated to 5 %, a tile still covers its square (its border stays: a vertical ray anywhere in the
+    map, seams included, hits), and its surface stays near the full one (median a few cm here)."""
+    from rangemcl.mapping.coarse import decimate_tile
+    from rangemcl.raycast import RayCaster
+
+    store, v, f = wavy
+    for e in store.entries:
+        assert e.coarse.bounds[:2] == pytest.approx(e.bounds[:2], abs=0.01) and e.coarse.bounds[
+            3:5
+        ] == pytest.approx(e.bounds[3:5], abs=0.01)
+    coarse, full = RayCaster("cpu", 1), RayCaster("cpu", 1)
+    for k in range(len(store.entries)):
+        cv, cf, cg = store.read(k, coarse=True)
+        assert cg.all()
+        coarse.add_mesh(cv, cf)
+    full.add_mesh(v, f)
+    rng = np.random.default_rng(0)
+    xy = np.concatenate(
+        [rng.uniform(0.1, 99.9, (2000, 2)), np.c_[np.full(200, 40.0), rng.uniform(0.1, 99.9, 200)]]
+    )
+    origins = np.c_[xy, np.full(len(xy), 5.0)]
+    down = np.tile([0.0, 0.0, -1.0], (len(xy), 1))
+    rc, rf = coarse.cast(origins, down, 10.0).ranges, full.cast(origins, down, 10.0).ranges
+    assert np.isfinite(rc).all() and np.isfinite(rf).all()
+    assert np.median(np.abs(rc - rf)) < 0.05
+    again = decimate_tile(*store.read(3))
+    assert all(np.array_equal(a, b) for a, b in zip(again, store.read(3, coarse=True), strict=True))
+
+
+def test_where_the_budget_is_short_the_farther_tiles_are_coarse(wavy):
+    """Every wanted tile is held, the nearest at full resolution and the farther ones at the coarse level,
+    within the budget; with room for all, all are full."""
+    from rangemcl.mapping.cache import COARSE
+
+    store, _v, _f = wavy
+    focus = [[50.0, 50.0]]
+    dist = tile_distances(store, focus)
+    near = [k for k in np.argsort(dist, kind="stable") if dist[k] <= 25.0]
+    full = sum(25 * store.entries[k].vertices + 12 * store.entries[k].triangles for k in near)
+    cache = TileCache(store, budget_bytes=full // 3)
+    r = cache.request(focus, 25.0)
+    assert r.held == r.wanted and not r.left_out and len(r.wanted) == len(near) == 9
+    assert 0 < len(r.coarse) < len(r.held) and cache.nbytes <= cache.budget_bytes
+    held_full = [k for k in r.held if cache.levels[k] != COARSE]
+    assert max(dist[k] for k in held_full) <= min(dist[k] for k in r.coarse)
+    big = TileCache(store, budget_bytes=10 * full)
+    r = big.request(focus, 25.0)
+    assert r.held == r.wanted and r.coarse == []
+    none = TileCache(store, budget_bytes=10 * full, coarse=False)
+    assert (
+        none.request(focus, 25.0).coarse == []
+        and TileCache(store, full // 3, coarse=False).request(focus, 25.0).left_out
+    )

@@ -82,6 +82,37 @@ def test_a_small_budget_holds_and_says_what_it_left_out(tiled, tmp_path):
     assert m["success"] and whole["frames"] == summary["frames"]
 
 
+def test_with_a_coarse_level_the_farther_tiles_come_coarse(tiled, tmp_path):
+    """The same short budget over the map with a coarse level (``rangemcl map-coarse``): the farther tiles
+    are held coarse instead of left out (fewer than half the left-out tiles of the map without), and the
+    track stays within 5 cm of the whole map's RMSE."""
+    import shutil
+
+    from rangemcl.mapping.coarse import add_coarse_level
+    from rangemcl.mapping.store import TileStore
+
+    seq, map_dir = tiled
+    coarse_dir = tmp_path / "map10c"
+    shutil.copytree(map_dir, coarse_dir)
+    add_coarse_level(coarse_dir)
+    store = TileStore.open(coarse_dir)
+    one = 62 * max(e.triangles for e in store.entries) + 12 * max(e.vertices for e in store.entries)
+    budget_mb = 6 * one / 1e6
+    run(seq, map_dir, tmp_path / "whole", settings(20.0))
+    summary = run(seq, coarse_dir, tmp_path / "coarse", settings(20.0), map_memory_mb=budget_mb)
+    run(seq, map_dir, tmp_path / "fine", settings(20.0), map_memory_mb=budget_mb)
+    rows = [r for r in frames(tmp_path / "coarse") if int(r["map_tiles"]) >= 0]
+    fine = [r for r in frames(tmp_path / "fine") if int(r["map_tiles"]) >= 0]
+    assert any(int(r["map_coarse"]) > 0 for r in rows) and all(int(r["map_coarse"]) == 0 for r in fine)
+    left_out = sum(int(r["map_left_out"]) for r in rows)
+    assert left_out < sum(int(r["map_left_out"]) for r in fine) / 2
+    assert sum(int(r["map_tiles"]) for r in rows) > sum(int(r["map_tiles"]) for r in fine)
+    assert summary["map_memory"]["peak_mb"] <= budget_mb and summary["map_memory"]["coarse_level"]
+    whole = json.loads((tmp_path / "whole" / "metrics.json").read_text())
+    m = json.loads((tmp_path / "coarse" / "metrics.json").read_text())
+    assert m["success"] and m["location_rmse_m"] < whole["location_rmse_m"] + 0.05
+
+
 def test_a_slow_disk_does_not_hold_up_a_tracking_step(tiled, tmp_path, monkeypatch):
     """Each tile takes 0.15 s to read: the first update waits for its tiles (it has nothing else), every
     later one goes on with what is loaded (0 ms waited) and logs the tiles still loading as left out."""
