@@ -357,16 +357,25 @@ def import_mesh_cmd(
     mesh: Path = typer.Argument(..., help="A triangle mesh file (PLY, OBJ)."),
     out: Path = typer.Option(..., help="Map folder to write."),
     tile_size: float = typer.Option(100.0, help="Tile side, metres."),
+    coarse_ratio: float = typer.Option(
+        0.05, help="The coarse level keeps this share of each tile's triangles (0: no coarse level)."
+    ),
     overwrite: bool = typer.Option(False, help="Replace the map that OUT holds."),
 ) -> None:
-    """Turn any triangle mesh (e.g. a published range-mcl map) into a map folder."""
+    """Turn any triangle mesh (e.g. a published range-mcl map) into a map folder (tiles, their coarse
+    level)."""
+    import math
+
+    from rangemcl.errors import InputError
     from rangemcl.mapping.meshmap import import_mesh
     from rangemcl.outdir import MAP_MARKERS, check_output, output_folder
 
+    if not (math.isfinite(coarse_ratio) and 0.0 <= coarse_ratio <= 1.0):
+        raise InputError(f"--coarse-ratio must lie in [0, 1], got {coarse_ratio}")
     check_output(out, overwrite=overwrite, kind="map", markers=MAP_MARKERS)  # before reading the mesh
     m = import_mesh(mesh, tile_size_m=tile_size, meta={"source_mesh": str(mesh.resolve())})
     with output_folder(out, overwrite=overwrite, kind="map", markers=MAP_MARKERS):
-        m.save(out)
+        m.save(out, coarse_ratio=coarse_ratio)
     typer.echo(f"wrote {out}: {m.n_triangles:,} triangles in {len(m.tiles)} tiles")
 
 
@@ -384,8 +393,8 @@ def map_info(map_dir: Path = typer.Argument(..., help="A map folder.")) -> None:
 @app.command("map-upgrade")
 def map_upgrade(map_dir: Path = typer.Argument(..., help="A map folder.")) -> None:
     """Rewrite a map folder of format 1 (mesh.ply + tiles.npz, before issue 17) as format 2 (a mesh file per
-    tile and an index), in place. The tiles and the index are written first and map.yaml last: a run
-    stopped part-way leaves the format-1 map as it was, and running it again finishes."""
+    tile, its coarse level and an index), in place. The tiles and the index are written first and map.yaml
+    last: a run stopped part-way leaves the format-1 map as it was, and running it again finishes."""
     from rangemcl.mapping.meshmap import MeshMap
     from rangemcl.mapping.store import TileStore
 
@@ -395,7 +404,7 @@ def map_upgrade(map_dir: Path = typer.Argument(..., help="A map folder.")) -> No
             (map_dir / name).unlink(missing_ok=True)
         typer.echo(f"{map_dir}: already format {m.format_version}")
         return
-    m.save(map_dir)
+    m.save(map_dir, coarse_ratio=0.05)
     store = TileStore.open(map_dir)
     typer.echo(
         f"{map_dir}: format 2, {store.n_triangles:,} triangles in {len(store.entries)} tile files, "

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from rangemcl.errors import InputError
+from rangemcl.mapping.coarse import write_with_coarse
 from rangemcl.mapping.meshmap import (
     GroundGrid,
     _tile_ij,
@@ -36,7 +37,7 @@ from rangemcl.mapping.meshmap import (
     ground_grid_layout,
     write_map_files,
 )
-from rangemcl.mapping.store import write_index, write_tile
+from rangemcl.mapping.store import write_index
 from rangemcl.pool import kill_point
 
 
@@ -66,6 +67,7 @@ def assemble_map(
     ground_cell_m: float = 1.0,
     meta: dict | None = None,
     drive_xy: np.ndarray | None = None,
+    coarse_ratio: float | None = None,
 ) -> dict:
     """Write the map folder ``out_dir`` from per-tile mesh files (see the module docstring).
 
@@ -142,7 +144,11 @@ def assemble_map(
             offset += len(vs[-1])
             part.unlink()
         ij = _tile_ij(np.array([key]))[0]
-        entries.append(write_tile(out_dir, ij, np.concatenate(vs), np.concatenate(fs), np.concatenate(gs)))
+        entries.append(
+            write_with_coarse(
+                out_dir, ij, np.concatenate(vs), np.concatenate(fs), np.concatenate(gs), coarse_ratio
+            )
+        )
         kill_point("assemble")  # tests: killed with the map folder half written
     write_index(out_dir, tile_size_m, origin, entries)
     counts = write_map_files(

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from rangemcl.errors import InputError
-from rangemcl.mapping.store import TileStore, write_index, write_tile
+from rangemcl.mapping.store import TileEntry, TileStore, write_index, write_tile
 
 COARSE_RATIO = 0.05  # triangles kept
 BOUNDARY_WEIGHT = 100.0  # how much more a boundary edge resists collapse
@@ -63,6 +63,15 @@ def decimate_tile(
     cv = cv.copy()
     cv[border] = v[nearest[border]]
     return cv, cf, np.asarray(is_ground, bool)[nearest]
+
+
+def write_with_coarse(map_dir, ij, vertices, faces, is_ground, coarse_ratio: float | None) -> TileEntry:
+    """Write a tile's file and, when ``coarse_ratio`` is set, its coarse level; its index entry."""
+    entry = write_tile(map_dir, ij, vertices, faces, is_ground)
+    if not coarse_ratio:
+        return entry
+    cv, cf, cg = decimate_tile(vertices, faces, is_ground, coarse_ratio)
+    return replace(entry, coarse=write_tile(map_dir, ij, cv, cf, cg, coarse=True))
 
 
 def add_coarse_level(map_dir, ratio: float = COARSE_RATIO, *, progress=None) -> dict:

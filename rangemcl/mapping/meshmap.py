@@ -334,11 +334,13 @@ class MeshMap:
 
     # --- disk -------------------------------------------------------------------------------------------
 
-    def save(self, map_dir) -> Path:
-        """Write the map folder (format 2, created if needed): each tile's mesh file, the index, the ground
-        grid and the drive, each atomically, ``map.yaml`` last; then files of an older map there (format
-        1's ``mesh.ply`` and ``tiles.npz``, tiles no longer listed) are removed."""
-        from rangemcl.mapping.store import write_index, write_tile
+    def save(self, map_dir, *, coarse_ratio: float | None = None) -> Path:
+        """Write the map folder (format 2, created if needed): each tile's mesh file (and its coarse level
+        when ``coarse_ratio`` is set: :mod:`rangemcl.mapping.coarse`), the index, the ground grid and the
+        drive, each atomically, ``map.yaml`` last; then files of an older map there (format 1's
+        ``mesh.ply`` and ``tiles.npz``, tiles no longer listed) are removed."""
+        from rangemcl.mapping.coarse import write_with_coarse
+        from rangemcl.mapping.store import write_index
 
         map_dir = Path(map_dir)
         try:
@@ -349,7 +351,9 @@ class MeshMap:
         for k in range(len(self.tiles)):
             v, f = self.submesh([k])
             used = np.unique(self.faces[self.tile_faces([k])])
-            entries.append(write_tile(map_dir, self.tiles[k], v, f, self.is_ground[used]))
+            entries.append(
+                write_with_coarse(map_dir, self.tiles[k], v, f, self.is_ground[used], coarse_ratio)
+            )
         write_index(map_dir, self.tile_size_m, self.tile_origin_xy, entries)
         write_map_files(
             map_dir,

@@ -87,6 +87,7 @@ class SimplifySettings:
 class TileSettings:
     size_m: float = 100.0
     margin_m: float = 10.0
+    coarse_ratio: float = 0.05  # the coarse level keeps this share of each tile's triangles (0: none)
 
 
 @dataclass
@@ -136,6 +137,8 @@ class MapSettings:
         for key, value in non_negative.items():
             if not (math.isfinite(value) and value >= 0):
                 raise InputError(f"{where}: {key} must be >= 0, got {value}")
+        if not (math.isfinite(t.coarse_ratio) and 0.0 <= t.coarse_ratio <= 1.0):
+            raise InputError(f"{where}: tiles.coarse_ratio must lie in [0, 1], got {t.coarse_ratio}")
         if not math.isfinite(g.z_margin_m):
             raise InputError(f"{where}: ground.z_margin_m must be finite, got {g.z_margin_m}")
         if sc.min_range_m >= sc.max_range_m:
@@ -560,6 +563,7 @@ def _build(
         work_dir=assembly,
         meta=meta,
         drive_xy=thin_path(seq.poses[:, :2, 3], 1.0),
+        coarse_ratio=settings.tiles.coarse_ratio,
     )
     report.tiles = counts["tiles"]
     report.triangles = counts["triangles"]
