@@ -191,6 +191,14 @@ class MapView:
             prefetch_m=self.prefetch_m,
             wait=wait or self.updates == 0,
         )
+        if r.wanted and not self.cache.items and not r.loading:
+            need = min(self.cache.sizes[k][1] or self.cache.sizes[k][0] for k in r.wanted)
+            raise InputError(
+                f"{self.source_dir}: --map-memory {self.budget_bytes / 1e6:g} MB holds none of the tiles in "
+                f"range (the smallest needs {need / 1e6:.1f} MB"
+                + ("" if self.cache.use_coarse else "; or add a coarse level: rangemcl map-coarse")
+                + ")"
+            )
         self.updates += 1
         self.loads += len(r.loaded)
         self.left_out_updates += bool(r.left_out)

@@ -144,6 +144,11 @@ def test_a_map_of_format_1_is_refused_with_the_fix(small_town_map, tmp_path, sav
         MapView(tmp_path / "v1", 100.0, RayCaster("cpu", 1))
     with pytest.raises(InputError, match="--map-memory"):
         MapView(map_dir, -1.0, RayCaster("cpu", 1))
+    # a budget below the nearest tile: one line saying what it takes, not an empty scene
+    view = MapView(map_dir, 0.01, RayCaster("cpu", 1), coarse=False)
+    with pytest.raises(InputError, match="holds none of the tiles in range.*rangemcl map-coarse"):
+        view.update(view.drive_xy[:1], 40.0)
+    view.close()
 
 
 def test_the_default_is_sized_from_the_machine(tiled, monkeypatch):
