@@ -146,7 +146,7 @@ def test_a_map_of_format_1_is_refused_with_the_fix(small_town_map, tmp_path, sav
         MapView(map_dir, -1.0, RayCaster("cpu", 1))
     # a budget below the nearest tile: one line saying what it takes, not an empty scene
     view = MapView(map_dir, 0.01, RayCaster("cpu", 1), coarse=False)
-    with pytest.raises(InputError, match="holds none of the tiles in range.*rangemcl map-coarse"):
+    with pytest.raises(InputError, match=r"holds none of the tiles in range.*rangemcl map-coarse"):
         view.update(view.drive_xy[:1], 40.0)
     view.close()
 
