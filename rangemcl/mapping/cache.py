@@ -247,7 +247,8 @@ class TileCache:
         prefetch_m``, within the budget (the class docstring says at which level); tiles no longer wanted
         stay until their room is needed, then go farthest first, before the wanted tiles that the plan
         leaves out or holds at another level. In the background, ``wait`` blocks until the wanted tiles'
-        loads have finished."""
+        loads have finished; a request also waits when it evicted a wanted tile to make room for a nearer
+        one (a budget too small for the tiles in range) or holds none of the wanted tiles."""
         out = Request(wanted=[], held=[], left_out=[])
         self._harvest(out)
         dist = tile_distances(self.store, focus_xy)
@@ -276,6 +277,10 @@ class TileCache:
                 self._evict(k, out)  # no room to keep the coarse level while the full one loads
             if self.reserved_bytes + self.size(k, level) <= self.budget_bytes:
                 self._start(k, level, out)
+        # a wanted tile evicted for a nearer one, or none of the wanted held: waiting beats a frame
+        # without them
+        inside = set(out.wanted)
+        wait = wait or any(k in inside for k in out.evicted) or not (inside & set(self.items))
         pending = [self._loading[k][1] for k in out.wanted if k in self._loading]
         if pending and wait and self._pool is not None:
             t0 = time.perf_counter()

@@ -103,8 +103,8 @@ def test_tiles_in_a_caster_leave_it_when_evicted(store):
 
 def test_the_background_loader_does_not_block_a_request(store):
     """A slow disk (0.3 s a tile): a request that must not wait returns at once with what is held and
-    reports the rest as left out and loading; the tiles enter at a later request; ``wait`` blocks until
-    they are in. The budget counts the tiles being loaded."""
+    reports the rest as left out and loading (unless it holds none of its tiles); the tiles enter at a
+    later request; ``wait`` blocks until they are in. The budget counts the tiles being loaded."""
     import time
 
     def slow(s, k, coarse):
@@ -112,25 +112,30 @@ def test_the_background_loader_does_not_block_a_request(store):
         return s.read(k, coarse=coarse)
 
     one = store.entries[0].vertices * 25 + store.entries[0].triangles * 12
+    ij = [e.ij for e in store.entries]
     cache = TileCache(store, budget_bytes=3 * one, read=slow, background=True)
     try:
+        # nothing held yet: even a request that need not wait waits (a scene without its tiles is worse)
+        r = cache.request([[10.0, 10.0]], 5.0, wait=False)
+        assert r.held == r.wanted == [ij.index((0, 0))] and r.wait_ms >= 250.0
+        # the car moves on: the new tile loads in the background, the request returns at once
         t0 = time.perf_counter()
-        r = cache.request([[10.0, 10.0]], 5.0, wait=False)
+        r = cache.request([[25.0, 10.0]], 10.0, wait=False)
         assert time.perf_counter() - t0 < 0.1
-        assert r.held == [] and r.left_out == r.wanted != [] and r.loading == r.wanted and r.wait_ms == 0.0
-        assert cache.reserved_bytes == len(r.loading) * one <= cache.budget_bytes
+        assert r.wanted == [ij.index((1, 0)), ij.index((0, 0))] and r.held == [ij.index((0, 0))]
+        assert r.left_out == r.loading == [ij.index((1, 0))] and r.wait_ms == 0.0
+        assert cache.reserved_bytes == 2 * one <= cache.budget_bytes
         time.sleep(0.5)
-        r = cache.request([[10.0, 10.0]], 5.0, wait=False)
-        assert r.held == r.wanted and r.loaded == r.wanted and not r.left_out
+        r = cache.request([[25.0, 10.0]], 10.0, wait=False)
+        assert r.held == r.wanted and r.loaded == [ij.index((1, 0))] and not r.left_out
         # elsewhere, waiting: the request returns with the tiles held, the wait measured
         r = cache.request([[90.0, 90.0]], 5.0, wait=True)
         assert r.held == r.wanted and r.wait_ms >= 250.0
-        assert r.evicted == [] and len(cache.items) == 2
-        # ahead of the car: the tiles within the prefetch ring load without being waited for, the two
+        assert r.evicted == [] and len(cache.items) == 3
+        # ahead of the car: the tiles within the prefetch ring load without being waited for, the three
         # held (no longer wanted) make room
         r = cache.request([[50.0, 50.0]], 1.0, prefetch_m=15.0, wait=True)
-        ij = [e.ij for e in store.entries]
-        assert set(r.evicted) == {ij.index((0, 0)), ij.index((4, 4))}
+        assert set(r.evicted) == {ij.index((0, 0)), ij.index((1, 0)), ij.index((4, 4))}
         assert r.wanted == [ij.index((2, 2))] and r.held == r.wanted and len(r.loading) == 2
         assert cache.peak_bytes <= cache.budget_bytes
     finally:
@@ -230,3 +235,18 @@ def test_where_the_budget_is_short_the_farther_tiles_are_coarse(wavy):
         none.request(focus, 25.0).coarse == []
         and TileCache(store, full // 3, coarse=False).request(focus, 25.0).left_out
     )
+
+
+def test_a_budget_of_one_tile_swaps_by_waiting(store):
+    """Room for one tile only and the car crosses into the next: the held tile is evicted for the nearer
+    one, and that request waits for it rather than leaving the scene empty."""
+    one = store.entries[0].vertices * 25 + store.entries[0].triangles * 12
+    ij = [e.ij for e in store.entries]
+    cache = TileCache(store, budget_bytes=one, background=True)
+    try:
+        cache.request([[15.0, 10.0]], 10.0, wait=False)
+        assert list(cache.items) == [ij.index((0, 0))]
+        r = cache.request([[25.0, 10.0]], 10.0, wait=False)
+        assert r.evicted == [ij.index((0, 0))] and r.held == [ij.index((1, 0))] and r.wait_ms > 0
+    finally:
+        cache.close()
