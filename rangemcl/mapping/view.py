@@ -82,11 +82,16 @@ def open_map(map_dir, memory_mb: float | None = None, *, device: str = "cpu", th
     return MapView(map_dir, memory_mb, caster), caster
 
 
+MMAP_THRESHOLD = 8 << 20  # bytes: allocations this large come from mmap (return_freed_memory)
+
+
 def return_freed_memory() -> None:
-    """Ask glibc to serve allocations from 1 MiB up by mmap, so that an evicted tile's memory goes back to
-    the system (with the default threshold, which grows with the largest block freed, evicted tiles left
-    the resident size at 3x the live bytes; with 1 MiB at 1.3x: ``docs/design/issue17_notes.md``). A
-    no-op where glibc is absent."""
+    """Ask glibc to serve allocations from 8 MiB up by mmap, so that an evicted tile's large arrays (its
+    BVH, its vertices) go back to the system: with the default threshold, which grows with the largest
+    block freed, evicted tiles left the resident size at 3x the live bytes (``docs/design/
+    issue17_notes.md``). At 1 MiB the localizer's per-frame arrays were mmapped too and a frame took 1.2x
+    as long (measured on the dense map of ``tools/bench_large_map.py``); at 8 MiB the frame time is that
+    of the default. A no-op where glibc is absent."""
     import ctypes
     import ctypes.util
 
@@ -94,7 +99,7 @@ def return_freed_memory() -> None:
     if not name or not sys.platform.startswith("linux"):
         return
     with contextlib.suppress(OSError, AttributeError):
-        ctypes.CDLL(name).mallopt(-3, 1 << 20)  # M_MMAP_THRESHOLD
+        ctypes.CDLL(name).mallopt(-3, MMAP_THRESHOLD)  # M_MMAP_THRESHOLD
 
 
 class MapView:
