@@ -8,6 +8,7 @@ import typer
 
 from rangemcl import __version__
 from rangemcl.cliutil import run_app, version_option
+from rangemcl.mapping.coarse import COARSE_RATIO  # light: Open3D is imported where a tile is decimated
 
 app = typer.Typer(
     name="rangemcl",
@@ -358,7 +359,7 @@ def import_mesh_cmd(
     out: Path = typer.Option(..., help="Map folder to write."),
     tile_size: float = typer.Option(100.0, help="Tile side, metres."),
     coarse_ratio: float = typer.Option(
-        0.05, help="The coarse level keeps this share of each tile's triangles (0: no coarse level)."
+        COARSE_RATIO, help="The coarse level keeps this share of each tile's triangles (0: no coarse level)."
     ),
     overwrite: bool = typer.Option(False, help="Replace the map that OUT holds."),
 ) -> None:
@@ -404,7 +405,7 @@ def map_upgrade(map_dir: Path = typer.Argument(..., help="A map folder.")) -> No
             (map_dir / name).unlink(missing_ok=True)
         typer.echo(f"{map_dir}: already format {m.format_version}")
         return
-    m.save(map_dir, coarse_ratio=0.05)
+    m.save(map_dir, coarse_ratio=COARSE_RATIO)
     store = TileStore.open(map_dir)
     typer.echo(
         f"{map_dir}: format 2, {store.n_triangles:,} triangles in {len(store.entries)} tile files, "
@@ -415,7 +416,7 @@ def map_upgrade(map_dir: Path = typer.Argument(..., help="A map folder.")) -> No
 @app.command("map-coarse")
 def map_coarse(
     map_dir: Path = typer.Argument(..., help="A map folder (format 2)."),
-    ratio: float = typer.Option(0.05, help="Share of each tile's triangles the coarse level keeps."),
+    ratio: float = typer.Option(COARSE_RATIO, help="Share of each tile's triangles the coarse level keeps."),
 ) -> None:
     """Add a coarse level to a map: each tile decimated to RATIO of its triangles (coarse/I_J.npz). A
     localizer within a memory budget (--map-memory) holds the farther tiles at this level where the tiles

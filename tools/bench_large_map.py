@@ -25,6 +25,7 @@ import shutil
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -93,7 +94,7 @@ def build_dense(src_dir: Path, out: Path, copies: int) -> dict:
             c = write_tile(
                 tmp, (ti, tj), np.concatenate(cvs), np.concatenate(cfs), np.concatenate(cgs), coarse=True
             )
-            e = type(e)(**{**e.__dict__, "coarse": c})
+            e = replace(e, coarse=c)
         entries.append(e)
         if n % 25 == 0:
             print(f"  tile {n + 1}/{len(targets)}, {time.perf_counter() - t0:.0f} s", file=sys.stderr)

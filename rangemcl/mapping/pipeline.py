@@ -26,6 +26,7 @@ from rangemcl.config import to_dict, write_config
 from rangemcl.dataset import Sequence
 from rangemcl.errors import InputError
 from rangemcl.mapping.assemble import assemble_map
+from rangemcl.mapping.coarse import COARSE_RATIO
 from rangemcl.mapping.ground import label_ground
 from rangemcl.mapping.meshmap import thin_path
 from rangemcl.mapping.normals import scan_normals
@@ -87,7 +88,7 @@ class SimplifySettings:
 class TileSettings:
     size_m: float = 100.0
     margin_m: float = 10.0
-    coarse_ratio: float = 0.05  # the coarse level keeps this share of each tile's triangles (0: none)
+    coarse_ratio: float = COARSE_RATIO  # the coarse level keeps this share of each tile's triangles (0: none)
 
 
 @dataclass

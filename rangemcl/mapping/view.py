@@ -194,7 +194,7 @@ class MapView:
             focus,
             radius_m + 0.75 * cell_m,  # a focus stands for its cell
             prefetch_m=self.prefetch_m,
-            wait=wait or self.updates == 0,
+            wait=wait,  # the cache also waits while it holds none of the wanted tiles (the first update)
         )
         if r.wanted and not self.cache.items and not r.loading:
             need = min(self.cache.sizes[k][1] or self.cache.sizes[k][0] for k in r.wanted)

@@ -125,13 +125,13 @@ def test_a_slow_disk_does_not_hold_up_a_tracking_step(tiled, tmp_path, monkeypat
         return read(self, k, **kw)
 
     monkeypatch.setattr(TileStore, "read", slow)
-    run(seq := tiled[0], tiled[1], tmp_path / "slow", settings(15.0), map_memory_mb=1000.0)
+    run(*tiled, tmp_path / "slow", settings(15.0), map_memory_mb=1000.0)
     rows = [r for r in frames(tmp_path / "slow") if r["map_load_ms"] != "nan"]
     assert float(rows[0]["map_load_ms"]) >= 150.0
     assert all(float(r["map_load_ms"]) == 0.0 for r in rows[1:])
     assert any(int(r["map_left_out"]) > 0 for r in rows[1:])
     est = np.loadtxt(tmp_path / "slow" / "estimate_kitti.txt")
-    assert np.isfinite(est).all() and len(est) == 40 and seq.is_dir()
+    assert np.isfinite(est).all() and len(est) == 40
 
 
 def test_a_map_of_format_1_is_refused_with_the_fix(small_town_map, tmp_path, save_v1):
