@@ -246,6 +246,13 @@ def build_map(
     resume: bool = typer.Option(
         False, help="Finish the interrupted build in OUT (same sequence and settings): only missing tiles."
     ),
+    backend: str = typer.Option(
+        "process", help="Where the tile jobs run: process (a local pool) or ray (Ray tasks, one per tile)."
+    ),
+    address: str = typer.Option(
+        None, help="Backend ray: the cluster's address ('auto': the one this machine is in; default: a "
+        "local instance of --workers CPUs)."
+    ),
     poses: Path = typer.Option(
         None, help="Bags: the LiDAR's poses, TUM (by time) or KITTI (a line per scan), if not in the bag."
     ),
@@ -259,7 +266,7 @@ def build_map(
 
     from rangemcl.config import load_config
     from rangemcl.errors import InputError
-    from rangemcl.mapping.pipeline import WORK_DIR, MapSettings
+    from rangemcl.mapping.pipeline import BACKENDS, WORK_DIR, MapSettings
     from rangemcl.mapping.pipeline import build_map as run
     from rangemcl.outdir import MAP_MARKERS, output_folder
 
@@ -275,13 +282,18 @@ def build_map(
         settings.workers = workers
     if resume and overwrite:
         raise InputError("--resume and --overwrite exclude each other")
+    if backend not in BACKENDS:
+        raise InputError(f"--backend {backend!r}: expected one of {', '.join(BACKENDS)}")
+    if address is not None and backend != "ray":
+        raise InputError("--address needs --backend ray")
+    where = {"backend": backend, "address": address}
     interrupted = (out / WORK_DIR).is_dir()  # a finished build removes its work area
     progress = sys.stderr.isatty()
     try:
         if resume:
             if not interrupted:
                 raise InputError(f"{out}: nothing to resume (no interrupted build in it)")
-            r = run(seq_dir, out, settings, progress=progress, resume=True, bag_options=bag)
+            r = run(seq_dir, out, settings, progress=progress, resume=True, bag_options=bag, **where)
         else:
             if interrupted and not overwrite:
                 raise InputError(
@@ -295,7 +307,7 @@ def build_map(
                 markers=(*MAP_MARKERS, WORK_DIR),
                 keep_if=lambda p: (p / WORK_DIR / "state.json").is_file(),
             ):
-                r = run(seq_dir, out, settings, progress=progress, bag_options=bag)
+                r = run(seq_dir, out, settings, progress=progress, bag_options=bag, **where)
     except KeyboardInterrupt:
         if (out / WORK_DIR / "state.json").is_file():
             typer.echo(

@@ -138,3 +138,118 @@ def kill_point(name: str) -> None:
     a power cut). Nothing happens otherwise."""
     if os.environ.get(KILL_AT_ENV) == name:
         os.kill(os.getpid(), signal.SIGKILL)
+
+
+# The watchdog of :func:`descendants_die_with_me`, run as ``python -c``: it watches the process that
+# started it (argv[1], its parent) and, every interval (argv[2] s), notes that process's descendants (pid
+# and start time, from /proc). When its stdin closes it looks whether that process still lives: if it
+# does, the work ended normally and the watchdog just exits; if not (killed, SIGKILL included), it kills
+# every process it last saw below it that is still the same process (same start time), and every process
+# whose command line holds one of the markers written to its stdin (a line each), then exits.
+_WATCHDOG = r"""
+import os, select, signal, sys, time
+watched, interval = int(sys.argv[1]), float(sys.argv[2])
+def table():
+    rows = {}
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                with open(f"/proc/{d}/stat") as f:
+                    s = f.read()
+            except OSError:
+                continue
+            rest = s[s.rindex(")") + 2:].split()
+            rows[int(d)] = (int(rest[1]), rest[19])  # ppid, start time
+    return rows
+def below(rows, roots):
+    seen, todo = {}, list(roots)
+    while todo:
+        p = todo.pop()
+        for q, (pp, start) in rows.items():
+            if pp == p and q not in seen and q != os.getpid():
+                seen[q] = start
+                todo.append(q)
+    return seen
+def signal_all(procs, sig):
+    for p in procs:
+        try:
+            os.kill(p, sig)
+        except OSError:
+            pass
+def marked(rows):
+    found = {}
+    for p, (_, start) in rows.items():
+        try:
+            with open(f"/proc/{p}/cmdline", "rb") as f:
+                line = f.read().decode(errors="replace")
+        except OSError:
+            continue
+        if any(m in line for m in markers) and p != os.getpid():
+            found[p] = start
+    return found
+last, markers = {}, []
+while True:
+    ready, _, _ = select.select([sys.stdin], [], [], interval)
+    line = sys.stdin.readline() if ready else ""
+    if line.strip():
+        markers.append(line.strip())
+    rows = table()
+    alive = os.getppid() == watched  # a dead parent (even one not yet reaped) has handed us to another
+    if alive and not (ready and not line):
+        last.update(below(rows, [watched]))
+        last = {p: s for p, s in last.items() if rows.get(p, (0, None))[1] == s}
+        continue
+    if alive:  # stdin closed by a living process: a normal end
+        sys.exit(0)
+    # what lives of the last look, what carries a marker, and what those started since: stopped first
+    # (so that none starts another meanwhile) until the set stops growing, then killed
+    doomed = {}
+    for _ in range(20):
+        rows = table()
+        grown = {p: s for p, s in last.items() if rows.get(p, (0, None))[1] == s}
+        grown.update(marked(rows) if markers else {})
+        grown.update(below(rows, list(grown)))
+        signal_all(grown, signal.SIGSTOP)
+        if grown.keys() == doomed.keys():
+            break
+        doomed = last = grown
+    signal_all(doomed, signal.SIGKILL)
+    sys.exit(0)
+"""
+
+
+class _Watchdog:
+    def __init__(self, pipe):
+        self._pipe = pipe
+
+    def also(self, marker: str) -> None:
+        """Kill too, on this process's death, every process whose command line holds ``marker`` (for
+        those started after the watchdog's last look whose parent died first)."""
+        if self._pipe is not None and marker.strip() and "\n" not in marker:
+            self._pipe.write(marker.strip().encode() + b"\n")
+            self._pipe.flush()
+
+
+@contextmanager
+def descendants_die_with_me(interval_s: float = 0.2) -> Iterator[_Watchdog]:
+    """Within the block, a watchdog process kills this process's descendants if this process dies,
+    however it dies (SIGKILL included). For children that ``die_with_parent`` cannot reach: the processes
+    of a local Ray instance (GCS, raylet, its agents and workers), of which some would otherwise outlive a
+    killed driver by a minute or more. A process started less than ``interval_s`` before the death whose
+    parent died first escapes the tree: ``also(marker)`` names it by its command line (Ray's session name).
+    Linux only (/proc); elsewhere a no-op."""
+    if not sys.platform.startswith("linux"):
+        yield _Watchdog(None)
+        return
+    import subprocess
+
+    dog = subprocess.Popen(
+        [sys.executable, "-c", _WATCHDOG, str(os.getpid()), str(interval_s)],
+        stdin=subprocess.PIPE,
+        start_new_session=True,  # a Ctrl-C to the terminal's group is the driver's to handle, not its
+    )
+    try:
+        yield _Watchdog(dog.stdin)
+    finally:
+        dog.stdin.close()
+        dog.wait()

@@ -322,6 +322,8 @@ CASES: list[tuple[str, list[str], dict]] = [
     ("rangemcl build-map {d}/seq --out {d}/map", ["map", "--overwrite"], {}),
     (BUILD + " --resume", ["nothing to resume"], {}),
     ("rangemcl build-map {d}/seq --out {d}/map --resume --overwrite", ["--resume", "--overwrite"], {}),
+    ("rangemcl build-map {d}/seq --out {d}/o --backend dask", ["--backend", "dask", "process, ray"], {}),
+    ("rangemcl build-map {d}/seq --out {d}/o --address auto", ["--address", "--backend ray"], {}),
     (BUILD + " --resume", ["state.json", "unreadable", "--overwrite"], {"o/.build/state.json": "{broken"}),
     (BUILD + " --resume", ["state.json", "not a build state"], {"o/.build/state.json": "[1]"}),
     (BUILD + " --resume", ["another sequence or other settings"], {"o/.build/state.json": '{"version": 0}'}),

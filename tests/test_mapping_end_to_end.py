@@ -262,15 +262,34 @@ def uninterrupted(drive):
     return out
 
 
-@pytest.mark.parametrize("moment", ["scans", "tiles", "assemble"])
+def _same_map(out: Path, reference: Path) -> None:
+    """The two map folders hold the same files, byte for byte (the build reports aside)."""
+    names = sorted(str(p.relative_to(reference)) for p in reference.rglob("*") if p.is_file())
+    names.remove("report.json")
+    assert (
+        sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file() and p.name != "report.json")
+        == names
+    )
+    assert any(name.startswith("tiles/") for name in names)
+    for name in names:
+        assert (out / name).read_bytes() == (reference / name).read_bytes(), name
+
+
+@pytest.mark.parametrize(
+    "moment,backend",
+    [("scans", "process"), ("tiles", "process"), ("assemble", "process"), ("tiles", "ray")],
+)
 def test_sigkill_at_three_moments_resumes_to_the_same_map_and_leaves_no_process(
-    drive, uninterrupted, tmp_path, moment
+    drive, uninterrupted, tmp_path, moment, backend
 ):
     """`kill -9` in the middle of the scan stage, with some tiles built and some not, and with the map
     folder half written (``$RANGEMCL_KILL_AT``: the run kills itself there, no handler runs): no process
-    of the killed run (tile workers, multiprocessing's resource tracker) is alive 2 s later, a plain
-    rerun is refused naming --resume, and --resume finishes a map identical, byte for byte, to the
-    uninterrupted build."""
+    of the killed run (tile workers, multiprocessing's resource tracker; with ``--backend ray`` the local
+    Ray instance: GCS, raylet, agents, workers) is alive 2 s later, a plain rerun is refused naming
+    --resume, and --resume finishes a map identical, byte for byte, to the uninterrupted build (made by
+    the process pool)."""
+    if backend == "ray":
+        pytest.importorskip("ray")
     import os
     import signal
     import time
@@ -279,8 +298,20 @@ def test_sigkill_at_three_moments_resumes_to_the_same_map_and_leaves_no_process(
     _, seq, _ = drive
     token = uuid.uuid4().hex
     out = tmp_path / "m"
-    cmd = [sys.executable, "-m", "rangemcl.cli", "build-map", str(seq), "--out", str(out)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "rangemcl.cli",
+        "build-map",
+        str(seq),
+        "--out",
+        str(out),
+        "--backend",
+        backend,
+    ]
     env = {**os.environ, "RANGEMCL_KILL_AT": moment, "RANGEMCL_TEST_TOKEN": token, "TMPDIR": str(tmp_path)}
+    if backend == "ray":
+        del env["TMPDIR"]  # Ray's sockets live under it, and a socket's path is at most 107 bytes
     killed = subprocess.run(cmd, env=env, capture_output=True, text=True)
     assert killed.returncode == -signal.SIGKILL, killed.stderr
     assert (out / ".build").is_dir()
@@ -301,12 +332,27 @@ def test_sigkill_at_three_moments_resumes_to_the_same_map_and_leaves_no_process(
     assert not (out / ".build").exists()
     if moment != "scans":
         assert "taken from the interrupted build" in resumed.stdout
-    names = sorted(str(p.relative_to(uninterrupted)) for p in uninterrupted.rglob("*") if p.is_file())
-    names.remove("report.json")
-    assert (
-        sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file() and p.name != "report.json")
-        == names
-    )
-    assert any(name.startswith("tiles/") for name in names)
-    for name in names:
-        assert (out / name).read_bytes() == (uninterrupted / name).read_bytes(), name
+    _same_map(out, uninterrupted)
+
+
+def test_ray_tasks_on_another_node_read_the_chunks_through_the_driver(
+    drive, uninterrupted, tmp_path, monkeypatch
+):
+    """`build-map --backend ray` with every task fetching its spooled chunks from the reader actor on the
+    driver's node, as a task on another node of a cluster does: the same map, byte for byte, as the
+    process pool's; each tile job reports its own peak memory."""
+    pytest.importorskip("ray")
+    import functools
+
+    from rangemcl.mapping import raybuild
+
+    _, seq, _ = drive
+    monkeypatch.setattr(raybuild, "run_tiles", functools.partial(raybuild.run_tiles, via_reader=True))
+    out = tmp_path / "m"
+    report = build_map(seq, out, MapSettings(), backend="ray")  # all cores, as `uninterrupted`
+    _same_map(out, uninterrupted)
+    peaks = [s["peak_rss_mb"] for s in report.tile_stats]  # every tile job (a margin's may end empty)
+    assert len(peaks) >= report.tiles and min(peaks) > 50
+    assert report.peak_rss_tile_jobs_mb >= max(peaks)
+    with pytest.raises(InputError, match="backend 'dask'"):
+        build_map(seq, tmp_path / "n", MapSettings(), backend="dask")

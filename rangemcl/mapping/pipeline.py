@@ -296,13 +296,13 @@ def voxel_thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
     return np.sort(first)
 
 
-def accumulate_thinned(chunks: list[Path], voxel_m: float, flush_points: int = 4_000_000):
+def accumulate_thinned(chunks, voxel_m: float, flush_points: int = 4_000_000):
     """A tile's spooled points, one per voxel (the earliest scan's wins), read chunk by chunk so that
     memory follows the tile's surface area, not how often the drive passed by."""
     kept: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     pending = 0
-    for path in chunks:
-        with np.load(path) as d:
+    for source in chunks:
+        with np.load(source) as d:
             kept.append((d["points"], d["normals"], d["ground"]))
         pending += len(kept[-1][0])
         if pending >= flush_points:
@@ -319,10 +319,13 @@ def _thin_parts(parts, voxel_m: float):
     return points[keep], normals[keep], ground[keep]
 
 
-def build_tile(job: TileJob) -> dict:
-    """Poisson mesh of one tile (its points include the margin), cropped to the tile, ground simplified."""
+def mesh_tile(job: TileJob, sources=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """Poisson mesh of one tile (its points include the margin), cropped to the tile, ground simplified:
+    ``(vertices, faces, is_ground, stats)``. ``sources`` are the tile's spooled chunks as paths or open
+    binary files (default: ``job.chunks``), in spool order."""
     t0 = time.perf_counter()
-    points, normals, ground = accumulate_thinned(job.chunks, job.poisson.voxel_m)
+    chunks = job.chunks if sources is None else sources
+    points, normals, ground = accumulate_thinned(chunks, job.poisson.voxel_m)
     normals = normals.astype(np.float64)
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     ti, tj = job.tile
@@ -349,7 +352,12 @@ def build_tile(job: TileJob) -> dict:
     stats["triangles"] = len(f)
     stats["ground_triangles_after"] = int(is_ground[f].all(axis=1).sum()) if len(f) else 0
     stats["seconds"] = time.perf_counter() - t0
-    # whole or absent (a resumed build trusts every tile output it finds), then its stats beside it
+    return v, f, is_ground, stats
+
+
+def write_tile(job: TileJob, v: np.ndarray, f: np.ndarray, is_ground: np.ndarray, stats: dict) -> dict:
+    """A tile's mesh into the work area: whole or absent (a resumed build trusts every tile output it
+    finds), then its stats beside it."""
     tmp = job.out.with_name(f".{job.out.name}.tmp.npz")
     np.savez(tmp, vertices=v, faces=f, is_ground=is_ground)
     os.replace(tmp, job.out)
@@ -357,10 +365,16 @@ def build_tile(job: TileJob) -> dict:
     return stats
 
 
+def build_tile(job: TileJob) -> dict:
+    """One tile job of the process pool: its mesh, written to ``job.out``."""
+    return write_tile(job, *mesh_tile(job))
+
+
 def _plain(x) -> bool:
     return isinstance(x, int | float | str | bool)
 
 
+BACKENDS = ("process", "ray")  # where the tile jobs run: a local process pool, or Ray (local or a cluster)
 WORK_DIR = ".build"  # an unfinished build's work area inside its map folder (kept for --resume)
 STATE_VERSION = 1
 _SCAN_COUNTS = (
@@ -393,6 +407,8 @@ def build_map(
     progress: bool = False,
     resume: bool = False,
     bag_options=None,
+    backend: str = "process",
+    address: str | None = None,
 ) -> BuildReport:
     """Build a mesh map from a sequence with poses and write it (mesh, tiles, metadata, config, report).
 
@@ -401,7 +417,9 @@ def build_map(
     had finished and builds only the tiles whose mesh is missing (the same sequence and settings are
     required; an :class:`InputError` says otherwise). Without ``resume`` a leftover work area is swept.
     A build that fails leaves nothing it created; one interrupted (Ctrl-C, SIGTERM) after its scan stage
-    keeps the work area for ``resume``."""
+    keeps the work area for ``resume``. ``backend`` "ray" runs the tile jobs as Ray tasks
+    (:mod:`rangemcl.mapping.raybuild`) on a local instance of ``settings.workers`` CPUs, or on the cluster
+    at ``address``; the map is the same as the process pool's."""
     out_dir = Path(out_dir)
     made = None  # the outermost folder this build creates
     probe = out_dir
@@ -409,7 +427,9 @@ def build_map(
         made = probe
         probe = probe.parent
     try:
-        return _build(seq_dir, out_dir, settings, progress, resume, bag_options)
+        if backend not in BACKENDS:
+            raise InputError(f"backend {backend!r}: expected one of {', '.join(BACKENDS)}")
+        return _build(seq_dir, out_dir, settings, progress, resume, bag_options, backend, address)
     except BaseException as err:
         work = out_dir / WORK_DIR
         keep = isinstance(err, KeyboardInterrupt) and (work / "state.json").is_file()
@@ -422,7 +442,14 @@ def build_map(
 
 
 def _build(
-    seq_dir, out_dir: Path, settings: MapSettings | None, progress: bool, resume: bool, bag_options=None
+    seq_dir,
+    out_dir: Path,
+    settings: MapSettings | None,
+    progress: bool,
+    resume: bool,
+    bag_options=None,
+    backend: str = "process",
+    address: str | None = None,
 ) -> BuildReport:
     settings = settings or MapSettings()
     settings.check()
@@ -528,7 +555,15 @@ def _build(
     todo = [j for j in jobs if not (j.out.is_file() and j.out.with_suffix(".json").is_file())]
     report.tiles_resumed = len(jobs) - len(todo)
     workers = settings.workers or os.cpu_count() or 1
-    if workers == 1 or len(todo) <= 1:
+    ray_peaks = []
+    if backend == "ray":
+        from rangemcl.mapping.raybuild import run_tiles
+
+        ran = run_tiles(todo, write_tile, work_dir=work, workers=workers, address=address)
+        for s in _progress(ran, progress, "tiles", total=len(todo)):
+            ray_peaks.append(s.get("peak_rss_mb", 0.0))
+            kill_point("tiles")
+    elif workers == 1 or len(todo) <= 1:
         for j in _progress(todo, progress, "tiles"):
             build_tile(j)
             kill_point("tiles")  # tests: killed with tiles done and tiles to do
@@ -572,7 +607,7 @@ def _build(
     write_config(settings, out_dir / "config.yaml")
     report.seconds["total"] = time.perf_counter() - clock
     report.peak_rss_main_mb = _rss_mb(resource.RUSAGE_SELF)
-    report.peak_rss_tile_jobs_mb = _rss_mb(resource.RUSAGE_CHILDREN)
+    report.peak_rss_tile_jobs_mb = max([_rss_mb(resource.RUSAGE_CHILDREN), *ray_peaks])
     report.peak_rss_mb = max(report.peak_rss_main_mb, report.peak_rss_tile_jobs_mb)
     (out_dir / "report.json").write_text(json.dumps(report.__dict__, indent=2, default=_jsonable))
     shutil.rmtree(work, ignore_errors=True)  # the map is whole: its work area goes
