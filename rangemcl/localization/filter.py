@@ -193,6 +193,7 @@ class MonteCarloLocalizer:
         self.refine_gate = (float(refine_gate_m), math.radians(refine_gate_deg))
         self.refine_all_heights_updates = int(refine_all_heights_updates)
         self.map_radius_m = float(map_radius_m)  # a map within a budget: tiles this near the particles
+        self._stepped = False  # a map within a budget loads its first tiles before the first frame
         self.calibration_settle_updates = int(calibration_settle_updates)
         self.sensor_height_m = float(sensor_height_m)
         self.update_distance_m = float(update_distance_m)
@@ -296,6 +297,7 @@ class MonteCarloLocalizer:
         if self._prior_pending:
             self.place_prior()
         self.convergence_test.reset()
+        self._preload()
 
     def _from_prior(self, n: int, levelled_points: np.ndarray, top: int | None = None) -> np.ndarray | None:
         """``n`` particles around the prior's ``top`` best places for this scan (default ``prior_top``,
@@ -334,6 +336,13 @@ class MonteCarloLocalizer:
         self._since_search = 0 if settle else -1
         self._prior_pending = False
         self.last_estimate = x0.copy()
+        self._preload()
+
+    def _preload(self) -> None:
+        """Before the first frame, a map within a memory budget loads the tiles that the particles need
+        (the start-up of the run, as a map held whole is read before it), so that no frame waits for them."""
+        if not self._stepped and hasattr(self.map, "preload"):
+            self.map.preload(self.particles[:, :2], self.map_radius_m)
 
     def _set_particles(self, particles: np.ndarray) -> None:
         self.particles = np.asarray(particles, np.float64)
@@ -415,6 +424,7 @@ class MonteCarloLocalizer:
                 levelled = level() if self._needs_prior() else None
                 if self._prior_pending and levelled is not None:
                     self._draw_initial_prior(levelled)
+                self._stepped = True
                 if hasattr(self.map, "update"):  # a map within a memory budget (rangemcl.mapping.view)
                     info.update(
                         self.map.update(self.particles[:, :2], self.map_radius_m, wait=not self.converged)
