@@ -575,3 +575,29 @@ def test_generate_town_rejects_bad_arguments(tmp_path):
         generate_town(1, SIZE, tmp_path / "t.xml", n_parked_variants=-2)
     with pytest.raises(InputError, match="TownStyle"):
         generate_town(1, SIZE, tmp_path / "t.xml", style={"road_width_m": 8.0})
+
+
+def test_a_town_of_many_bodies_gets_the_arena_its_collision_step_needs():
+    """MuJoCo's collision step takes a 2-byte-per-body-pair matrix from the arena: a city's thousands of
+    parked-car bodies overflow the default (a 2 km town stopped with "mj_stackAlloc: out of memory").
+    The size the generator writes is enough for a scene of that many bodies; small towns keep the default."""
+    import mujoco
+
+    from simbed.towngen import _arena_size
+
+    assert _arena_size(1499) == []
+    n = 3000
+    bodies = "".join(
+        f'<body pos="{i % 60 * 3} {i // 60 * 3} 0.5"><geom type="box" size="0.5 0.5 0.5"/></body>'
+        for i in range(n - 1)
+    )
+
+    def forward(size_lines: list[str]) -> None:
+        xml = f"<mujoco>{''.join(size_lines)}<worldbody>{bodies}</worldbody></mujoco>"
+        model = mujoco.MjModel.from_xml_string(xml)
+        assert model.nbody == n
+        mujoco.mj_forward(model, mujoco.MjData(model))
+
+    forward(_arena_size(n))
+    with pytest.raises(mujoco.FatalError, match="out of memory"):
+        forward(['<size memory="8M"/>'])  # the matrix alone takes 18 MB
