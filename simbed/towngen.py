@@ -1255,12 +1255,13 @@ _CAR_BODIES_MAX = 32  # bodies of car.xml, with room to spare
 
 
 def _arena_size(n_bodies: int) -> list[str]:
-    """MuJoCo's collision step takes a body-pair matrix (2 bytes a pair) from the model's arena: a city's
-    thousands of parked-car bodies need more than MuJoCo's default (a 2 km town: 12,472 bodies, 311 MB).
-    Towns with fewer than 1,500 bodies (the shipped ones) keep the default and their bytes."""
+    """MuJoCo's collision step takes a body-pair matrix (2 bytes a pair) from the model's arena, and its
+    broad phase as much again: a city's thousands of parked-car bodies need more than MuJoCo's default
+    (a 2 km town: 12,472 bodies, 311 MB each). Towns with fewer than 1,500 bodies (the shipped ones) keep
+    the default and their bytes."""
     if n_bodies < 1500:
         return []
-    mb = math.ceil((2 * n_bodies**2 * 1.25) / 2**20) + 64
+    mb = math.ceil((2 * 2 * n_bodies**2 * 1.25) / 2**20) + 64
     return [f'  <size memory="{mb}M"/>']
 
 
