@@ -381,12 +381,25 @@ def import_mesh_cmd(
 
     from rangemcl.errors import InputError
     from rangemcl.mapping.meshmap import import_mesh
+    from rangemcl.mapping.stream_import import import_mesh_streaming, ply_layout
     from rangemcl.outdir import MAP_MARKERS, check_output, output_folder
 
     if not (math.isfinite(coarse_ratio) and 0.0 <= coarse_ratio <= 1.0):
         raise InputError(f"--coarse-ratio must lie in [0, 1], got {coarse_ratio}")
     check_output(out, overwrite=overwrite, kind="map", markers=MAP_MARKERS)  # before reading the mesh
-    m = import_mesh(mesh, tile_size_m=tile_size, meta={"source_mesh": str(mesh.resolve())})
+    meta = {"source_mesh": str(mesh.resolve())}
+    if mesh.is_file() and ply_layout(mesh) is not None:
+        # a binary triangle PLY: read in place, a block at a time (a mesh larger than memory imports too)
+        if not (math.isfinite(tile_size) and tile_size > 0):
+            raise InputError(f"{mesh}: tile_size_m must be a positive number, got {tile_size!r}")
+        work = out.absolute().parent / f".{out.name}.import"
+        with output_folder(out, overwrite=overwrite, kind="map", markers=MAP_MARKERS):
+            counts = import_mesh_streaming(
+                mesh, out, work_dir=work, tile_size_m=tile_size, coarse_ratio=coarse_ratio, meta=meta
+            )
+        typer.echo(f"wrote {out}: {counts['triangles']:,} triangles in {counts['tiles']} tiles")
+        return
+    m = import_mesh(mesh, tile_size_m=tile_size, meta=meta)
     with output_folder(out, overwrite=overwrite, kind="map", markers=MAP_MARKERS):
         m.save(out, coarse_ratio=coarse_ratio)
     typer.echo(f"wrote {out}: {m.n_triangles:,} triangles in {len(m.tiles)} tiles")
