@@ -290,6 +290,9 @@ def grid_cells(corners: np.ndarray, cell_m: float, grid_m: float) -> np.ndarray:
     return (ij + 0.5) * grid_m
 
 
+PARTIAL = "+partial"  # the key's suffix of a prior rendered with some tiles coarse or left out (a budget)
+
+
 def load_or_build(
     mesh_map, caster, area_corners: np.ndarray, area_cell_m: float, params: PriorParams | None = None
 ):
@@ -300,20 +303,26 @@ def load_or_build(
     params.check()
     xy = grid_cells(area_corners, area_cell_m, params.cell_m)
     key = prior_key(mesh_map, xy, params)
+    budget = hasattr(mesh_map, "update")  # a map seen within a memory budget
     src = getattr(mesh_map, "source_dir", None)
     path = None if src is None else Path(src) / PRIOR_FILE
     if path is not None:
-        prior = PlacePrior.load(path, key)
-        if prior is not None:
-            return prior, "loaded"
+        # a prior rendered where the budget held some tiles coarse or none is stored under its own key: a
+        # run within a budget may take it, a run with the whole map renders its own
+        for k in (key, key + PARTIAL) if budget else (key,):
+            prior = PlacePrior.load(path, k)
+            if prior is not None:
+                return prior, "loaded"
     gz = mesh_map.ground.height_at(xy[:, 0], xy[:, 1])
-    if hasattr(mesh_map, "update"):  # a map seen within a memory budget: rendered tile by tile
+    if budget:  # rendered tile by tile
         t0 = time.perf_counter()
         tile = mesh_map.tile_at(xy[:, 0], xy[:, 1])
         profiles = np.empty((len(xy), 2, params.bins), np.uint8)
         for t in np.unique(tile):
             sel = np.flatnonzero(tile == t)
-            mesh_map.update(xy[sel], params.max_range_m + 1.0)
+            held = mesh_map.update(xy[sel], params.max_range_m + 1.0)
+            if held.get("map_coarse") or held.get("map_left_out"):
+                key = prior_key(mesh_map, xy, params) + PARTIAL
             profiles[sel] = PlacePrior.build(caster, xy[sel], gz[sel], params).profiles
         prior = PlacePrior(xy, profiles, params, build_s=time.perf_counter() - t0)
     else:

@@ -148,3 +148,36 @@ def test_prior_is_stored_in_the_map_folder_and_rebuilt_when_the_map_changes(town
     (tmp_path / "map" / PRIOR_FILE).write_bytes(b"not a zip")
     with pytest.raises(InputError, match="place prior"):
         load_or_build(loaded, caster, corners, 1.0)
+
+
+def test_a_prior_rendered_with_tiles_held_coarse_is_not_taken_for_the_whole_maps(town, tmp_path):
+    """Within a budget too small for the tiles in range at full resolution, the prior is rendered partly
+    from the coarse level: stored under its own key, which later runs within a budget load and a run with
+    the whole map does not; within a budget that holds them all, the prior is the whole map's."""
+    from rangemcl.localization.place_prior import PARTIAL, prior_key
+    from rangemcl.mapping.view import MapView
+
+    _t, caster, m, _ = town
+    m.save(tmp_path / "map", coarse_ratio=0.05)
+    corners = np.array([[0.0, -27.0], [10.0, -27.0], [20.0, 23.0]])
+
+    def in_view(budget_mb: float):
+        view = MapView(tmp_path / "map", budget_mb, RayCaster(threads=2))
+        try:
+            return load_or_build(view, view.caster, corners, 1.0), prior_key(
+                view, grid_cells(corners, 1.0, 2.0), PriorParams()
+            )
+        finally:
+            view.close()
+
+    (small, how), key = in_view(0.12)  # every tile coarse, a few small ones at full resolution
+    assert how == "built"
+    assert PlacePrior.load(tmp_path / "map" / PRIOR_FILE, key + PARTIAL) is not None
+    assert PlacePrior.load(tmp_path / "map" / PRIOR_FILE, key) is None
+    assert in_view(0.12)[0][1] == "loaded"
+    whole, how = load_or_build(MeshMap.load(tmp_path / "map"), caster, corners, 1.0)
+    assert how == "built" and not np.array_equal(whole.profiles, small.profiles)
+    (tmp_path / "map" / PRIOR_FILE).unlink()
+    (full, how), _ = in_view(100.0)
+    assert how == "built" and np.array_equal(full.profiles, whole.profiles)
+    assert PlacePrior.load(tmp_path / "map" / PRIOR_FILE, key) is not None
