@@ -374,6 +374,9 @@ def import_mesh_cmd(
         COARSE_RATIO, help="The coarse level keeps this share of each tile's triangles (0: no coarse level)."
     ),
     overwrite: bool = typer.Option(False, help="Replace the map that OUT holds."),
+    stream: bool = typer.Option(
+        True, help="Read a binary triangle PLY in place, a block at a time (--no-stream: load it whole)."
+    ),
 ) -> None:
     """Turn any triangle mesh (e.g. a published range-mcl map) into a map folder (tiles, their coarse
     level)."""
@@ -388,7 +391,7 @@ def import_mesh_cmd(
         raise InputError(f"--coarse-ratio must lie in [0, 1], got {coarse_ratio}")
     check_output(out, overwrite=overwrite, kind="map", markers=MAP_MARKERS)  # before reading the mesh
     meta = {"source_mesh": str(mesh.resolve())}
-    if mesh.is_file() and ply_layout(mesh) is not None:
+    if stream and mesh.is_file() and ply_layout(mesh) is not None:
         # a binary triangle PLY: read in place, a block at a time (a mesh larger than memory imports too)
         if not (math.isfinite(tile_size) and tile_size > 0):
             raise InputError(f"{mesh}: tile_size_m must be a positive number, got {tile_size!r}")

@@ -318,13 +318,14 @@ def load_or_build(
         t0 = time.perf_counter()
         tile = mesh_map.tile_at(xy[:, 0], xy[:, 1])
         profiles = np.empty((len(xy), 2, params.bins), np.uint8)
+        partial = False
         for t in np.unique(tile):
             sel = np.flatnonzero(tile == t)
             held = mesh_map.update(xy[sel], params.max_range_m + 1.0)
-            if held.get("map_coarse") or held.get("map_left_out"):
-                key = prior_key(mesh_map, xy, params) + PARTIAL
+            partial = partial or bool(held["map_coarse"] or held["map_left_out"])
             profiles[sel] = PlacePrior.build(caster, xy[sel], gz[sel], params).profiles
         prior = PlacePrior(xy, profiles, params, build_s=time.perf_counter() - t0)
+        key += PARTIAL if partial else ""
     else:
         prior = PlacePrior.build(caster, xy, gz, params)
     how = "built"

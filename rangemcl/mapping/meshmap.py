@@ -56,6 +56,8 @@ MAP_FILES_V1 = ("mesh.ply", "tiles.npz", "ground.npz", "map.yaml")
 # Grids with more cells than this are coarsened (4 bytes a cell: 100 MB), e.g. a ground grid for a
 # mesh with a stray vertex kilometres away.
 MAX_GROUND_CELLS = 25_000_000
+# map.yaml's ground_labels for a map whose ground the rule of label_ground_vertices labelled
+GROUND_RULE_LABEL = "rule: up-facing normal within 30 deg, lowest 0.3 m of 1 m cell"
 
 
 # ---------------------------------------------------------------------------------------------- ground grid
@@ -254,7 +256,7 @@ class MeshMap:
         meta = dict(meta or {})
         if is_ground is None:
             g = label_ground_vertices(v, f)
-            meta.setdefault("ground_labels", "rule: up-facing normal within 30 deg, lowest 0.3 m of 1 m cell")
+            meta.setdefault("ground_labels", GROUND_RULE_LABEL)
         else:
             g = np.asarray(is_ground)
             if g.shape != (len(v),):

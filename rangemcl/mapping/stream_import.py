@@ -33,7 +33,6 @@ import numpy as np
 from rangemcl.errors import InputError
 
 BLOCK = 1 << 20  # vertices or faces per block of a pass
-GROUND_RULE = "rule: up-facing normal within 30 deg, lowest 0.3 m of 1 m cell"  # as MeshMap.from_mesh says
 
 _PLY_TYPES = {
     "char": "i1",
@@ -97,10 +96,8 @@ def ply_layout(path: Path) -> PlyLayout | None:
                     return None
     except (OSError, ValueError):
         return None
-    if fmt not in ("binary_little_endian", "binary_big_endian") or [e[0] for e in elements] != [
-        "vertex",
-        "face",
-    ]:
+    binary = fmt in ("binary_little_endian", "binary_big_endian")
+    if not binary or [e[0] for e in elements] != ["vertex", "face"]:
         return None
     end = "<" if fmt == "binary_little_endian" else ">"
     (_, nv, vprops), (_, nf, fprops) = elements
@@ -156,6 +153,7 @@ def import_mesh_streaming(
     from rangemcl.mapping.coarse import write_with_coarse
     from rangemcl.mapping.meshmap import (
         GROUND_RGB,
+        GROUND_RULE_LABEL,
         NON_GROUND_RGB,
         GroundGrid,
         _tile_ij,
@@ -183,8 +181,7 @@ def import_mesh_streaming(
         # 1. vertices: finite, bounds, colours
         lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
         names = layout.vertex_dtype.names
-        coloured = all(c in names for c in ("red", "green", "blue"))
-        by_colour = coloured
+        by_colour = all(c in names for c in ("red", "green", "blue"))  # until a vertex is otherwise
         for a in range(0, nv, block):
             b = vfile[a : a + block]
             v = _xyz(b)
@@ -295,11 +292,7 @@ def import_mesh_streaming(
             fill_cell_medians(heights, np.concatenate([np.load(p) for p in owned]), g_origin, g_cell)
         write_index(out_dir, tile_size_m, origin, entries)
         base = {"source_mesh": str(path), "created_by": "rangemcl import-mesh"}
-        base["ground_labels"] = (
-            "vertex colours"
-            if by_colour
-            else "rule: up-facing normal within 30 deg, lowest 0.3 m of 1 m cell"
-        )
+        base["ground_labels"] = "vertex colours" if by_colour else GROUND_RULE_LABEL
         return write_map_files(
             out_dir,
             entries,
