@@ -106,6 +106,9 @@ def _bag_options(
     return opt if given else None
 
 
+_PRIOR = typer.Option(
+    True, help="Render the place prior of global localization into the map (--no-prior: on first use)."
+)
 _LIDAR_TOPIC = typer.Option(None, help="Bags: the PointCloud2 topic (default: the only one, or /points).")
 _IMU_TOPIC = typer.Option(None, help="Bags: the sensor_msgs/Imu topic (default: /imu if present).")
 _ODOM_TOPIC = typer.Option(None, help="Bags: the nav_msgs/Odometry topic (default: /odom if present).")
@@ -250,8 +253,9 @@ def build_map(
         "process", help="Where the tile jobs run: process (a local pool) or ray (Ray tasks, one per tile)."
     ),
     address: str = typer.Option(
-        None, help="Backend ray: the cluster's address ('auto': the one this machine is in; default: a "
-        "local instance of --workers CPUs)."
+        None,
+        help="Backend ray: the cluster's address ('auto': the one this machine is in; default: a "
+        "local instance of --workers CPUs).",
     ),
     poses: Path = typer.Option(
         None, help="Bags: the LiDAR's poses, TUM (by time) or KITTI (a line per scan), if not in the bag."
@@ -260,8 +264,10 @@ def build_map(
     sensor_to_base: str = _SENSOR_TO_BASE,
     point_time_field: str = _POINT_TIME_FIELD,
     scan_stamp: str = _SCAN_STAMP,
+    prior: bool = _PRIOR,
 ) -> None:
-    """Build a tiled mesh map: range-image normals, ground labels, Poisson per tile, ground simplification."""
+    """Build a tiled mesh map: range-image normals, ground labels, Poisson per tile, ground simplification,
+    then the place prior of global localization."""
     import sys
 
     from rangemcl.config import load_config
@@ -330,6 +336,8 @@ def build_map(
             f"  skipped {r.scans_skipped_empty} scans with no valid point, "
             f"{r.points_nonfinite} NaN/inf points"
         )
+    if prior:
+        _place_prior_step(out)
 
 
 @app.command()
@@ -377,9 +385,10 @@ def import_mesh_cmd(
     stream: bool = typer.Option(
         True, help="Read a binary triangle PLY in place, a block at a time (--no-stream: load it whole)."
     ),
+    prior: bool = _PRIOR,
 ) -> None:
     """Turn any triangle mesh (e.g. a published range-mcl map) into a map folder (tiles, their coarse
-    level)."""
+    level, the place prior)."""
     import math
 
     from rangemcl.errors import InputError
@@ -401,11 +410,61 @@ def import_mesh_cmd(
                 mesh, out, work_dir=work, tile_size_m=tile_size, coarse_ratio=coarse_ratio, meta=meta
             )
         typer.echo(f"wrote {out}: {counts['triangles']:,} triangles in {counts['tiles']} tiles")
+    else:
+        m = import_mesh(mesh, tile_size_m=tile_size, meta=meta)
+        with output_folder(out, overwrite=overwrite, kind="map", markers=MAP_MARKERS):
+            m.save(out, coarse_ratio=coarse_ratio)
+        typer.echo(f"wrote {out}: {m.n_triangles:,} triangles in {len(m.tiles)} tiles")
+        del m
+    if prior:
+        _place_prior_step(out)
+
+
+def _place_prior_step(
+    map_dir: Path,
+    config: Path | None = None,
+    map_memory: float | None = None,
+    threads: int | None = None,
+    *,
+    required: bool = False,
+) -> None:
+    """Render (or find) the map's place prior for the localizer's settings and say so in one line. As the
+    last step of a build or import (``required`` False), a map without the prior's inputs (no measured
+    ground) is kept and the line says why there is no prior."""
+    import time
+
+    from rangemcl.config import load_config
+    from rangemcl.errors import InputError
+    from rangemcl.mcl import LocalizerSettings, map_place_prior
+
+    settings = load_config(LocalizerSettings, config)
+    t0 = time.perf_counter()
+    try:
+        prior, how = map_place_prior(map_dir, settings, map_memory_mb=map_memory, threads=threads)
+    except InputError as err:
+        if required:
+            raise
+        typer.echo(f"{map_dir}: no place prior ({err}); global localization needs one", err=True)
         return
-    m = import_mesh(mesh, tile_size_m=tile_size, meta=meta)
-    with output_folder(out, overwrite=overwrite, kind="map", markers=MAP_MARKERS):
-        m.save(out, coarse_ratio=coarse_ratio)
-    typer.echo(f"wrote {out}: {m.n_triangles:,} triangles in {len(m.tiles)} tiles")
+    typer.echo(
+        f"{map_dir}: place prior {how}: {len(prior.xy):,} cells of {prior.params.cell_m:g} m, "
+        f"{prior.nbytes / 1e6:.1f} MB, {time.perf_counter() - t0:.1f} s"
+    )
+
+
+@app.command("place-prior")
+def place_prior_cmd(
+    map_dir: Path = typer.Argument(..., help="A map folder."),
+    config: Path = typer.Option(None, help="YAML localizer settings (the prior's grid, the drivable area)."),
+    map_memory: float = typer.Option(
+        None, metavar="MB", help="Hold only the tiles near the cells being rendered, within this many MB."
+    ),
+    threads: int = typer.Option(None, help="CPU threads for ray casting (default: all cores)."),
+) -> None:
+    """Render the map's place prior (global localization's descriptors of the drivable area) and store it in
+    the map folder. build-map and import-mesh do this as their last step; run it again after changing the
+    localizer's prior settings, or for a map built with --no-prior."""
+    _place_prior_step(map_dir, config, map_memory, threads, required=True)
 
 
 @app.command("map-info")

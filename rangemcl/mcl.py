@@ -21,7 +21,7 @@ from rangemcl.errors import InputError
 from rangemcl.localization.calibration import OdometryCalibrator, ParticleCalibration
 from rangemcl.localization.filter import MonteCarloLocalizer, StepInfo
 from rangemcl.localization.lost import LostDetector, SignalWatch
-from rangemcl.localization.place_prior import PriorParams
+from rangemcl.localization.place_prior import PlacePrior, PriorParams, load_or_build
 from rangemcl.localization.refine import ScanRefiner
 from rangemcl.localization.renderer import ParticleRenderer
 from rangemcl.localization.scan_prep import RAY_SAMPLINGS, ScanRays, select_rays
@@ -38,6 +38,7 @@ __all__ = [
     "StepInfo",
     "build_localizer",
     "drivable_cells",
+    "map_place_prior",
     "prepare_rays",
     "rotation_roll_pitch",
     "se2_between",
@@ -574,3 +575,37 @@ def build_localizer(
         kld_bin_yaw_deg=c.kld_bin_yaw_deg,
         min_search_particles=c.min_search_particles,
     )
+
+
+def map_place_prior(
+    map_dir,
+    settings: LocalizerSettings | None = None,
+    *,
+    map_memory_mb: float | None = None,
+    device: str = "cpu",
+    threads: int | None = None,
+) -> tuple[PlacePrior, str]:
+    """The place prior that a localizer with ``settings`` uses on the map in ``map_dir``: loaded from the
+    map folder when one is stored for these settings, else rendered and stored there (what ``rangemcl
+    build-map`` and ``import-mesh`` do as their last step, so that the first global localization does not
+    pay for it). The map is held as the localizer holds it: within ``map_memory_mb`` (default: the
+    settings', else the localizer's default), the prior then rendered tile by tile. Returns ``(prior, how)``
+    with how in ``loaded | built | built (not saved: ...)``."""
+    from rangemcl.mapping.view import open_map
+
+    s = settings or LocalizerSettings()
+    s.check()
+    memory = map_memory_mb if map_memory_mb is not None else s.map_memory_mb
+    mesh_map, caster = open_map(map_dir, memory, device=device, threads=threads)
+    try:
+        if caster is None:
+            caster = RayCaster(device, threads)
+            caster.add_mesh(mesh_map.vertices, mesh_map.faces, name="map")
+        area = drivable_cells(mesh_map, s.init.drive_radius_m)
+        return load_or_build(
+            mesh_map, caster, area.corners, area.cell_m, PriorParams(cell_m=s.init.prior_cell_m)
+        )
+    finally:
+        close = getattr(mesh_map, "close", None)
+        if close is not None:
+            close()

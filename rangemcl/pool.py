@@ -179,13 +179,17 @@ def signal_all(procs, sig):
 def marked(rows):
     found = {}
     for p, (_, start) in rows.items():
-        try:
-            with open(f"/proc/{p}/cmdline", "rb") as f:
-                line = f.read().decode(errors="replace")
-        except OSError:
+        if p == os.getpid():
             continue
-        if any(m in line for m in markers) and p != os.getpid():
-            found[p] = start
+        for part in ("cmdline", "environ"):
+            try:
+                with open(f"/proc/{p}/{part}", "rb") as f:
+                    text = f.read().decode(errors="replace")
+            except OSError:
+                continue
+            if any(m in text for m in markers):
+                found[p] = start
+                break
     return found
 last, markers = {}, []
 while True:
@@ -223,8 +227,8 @@ class _Watchdog:
         self._pipe = pipe
 
     def also(self, marker: str) -> None:
-        """Kill too, on this process's death, every process whose command line holds ``marker`` (for
-        those started after the watchdog's last look whose parent died first)."""
+        """Kill too, on this process's death, every process whose command line or environment holds
+        ``marker`` (for those started after the watchdog's last look whose parent died first)."""
         if self._pipe is not None and marker.strip() and "\n" not in marker:
             self._pipe.write(marker.strip().encode() + b"\n")
             self._pipe.flush()
@@ -236,7 +240,8 @@ def descendants_die_with_me(interval_s: float = 0.2) -> Iterator[_Watchdog]:
     however it dies (SIGKILL included). For children that ``die_with_parent`` cannot reach: the processes
     of a local Ray instance (GCS, raylet, its agents and workers), of which some would otherwise outlive a
     killed driver by a minute or more. A process started less than ``interval_s`` before the death whose
-    parent died first escapes the tree: ``also(marker)`` names it by its command line (Ray's session name).
+    parent died first escapes the tree: ``also(marker)`` names it by its command line or by an environment
+    entry that it inherited (a child forked but not yet exec'd still has its parent's command line).
     Linux only (/proc); elsewhere a no-op."""
     if not sys.platform.startswith("linux"):
         yield _Watchdog(None)

@@ -241,15 +241,9 @@ def run_trial(
     """Localize one trial; its results row (the trial's fields plus metrics and timings)."""
     from rangemcl.dataset import load_sequence, splice_kidnapped
     from rangemcl.localize import RunOptions, localize_sequence
-    from rangemcl.mcl import LocalizerSettings
 
     out = trials_dir / trial.key
-    if trial.settings:
-        from rangemcl.config import from_dict
-
-        settings = from_dict(LocalizerSettings, json.loads(trial.settings), "suite settings")
-    else:
-        settings = LocalizerSettings()
+    settings = _trial_settings(trial)
     settings.observation.model = trial.model
     settings.particles.global_count = trial.particles
     n = len(load_sequence(drive))
@@ -405,6 +399,7 @@ def run_suite(
     say(f"suite {suite}: {len(trials)} trials, {len(trials) - len(todo)} already done")
     workers = workers or os.cpu_count() or 1
     drives = _ensure_drives(todo, out / "drives", device, workers, say)
+    _ensure_place_priors(todo, Path(map_dir), device, say)
     threads = max(1, (os.cpu_count() or 1) // workers)
     jobs = [(t, drives[t.drive_key], Path(map_dir), out / "trials", threads, device) for t in todo]
     new_file = not results_path.is_file()
@@ -480,6 +475,30 @@ def _ensure_drives(trials: list[Trial], drives_dir: Path, device: str, workers: 
     with process_pool(min(workers, len(first))) as pool:
         futures = {k: pool.submit(ensure_drive, t, drives_dir, device) for k, t in first.items()}
         return {k: f.result() for k, f in futures.items()}
+
+
+def _trial_settings(trial: Trial):
+    from rangemcl.mcl import LocalizerSettings
+
+    if not trial.settings:
+        return LocalizerSettings()
+    from rangemcl.config import from_dict
+
+    return from_dict(LocalizerSettings, json.loads(trial.settings), "suite settings")
+
+
+def _ensure_place_priors(trials: list[Trial], map_dir: Path, device: str, say) -> None:
+    """The map's place prior for each localizer setting of the trials, rendered once on all cores before
+    the trials start (else every worker would render the same prior at its first global spread)."""
+    from rangemcl.mcl import map_place_prior
+
+    for trial in {t.settings: t for t in trials}.values():
+        s = _trial_settings(trial)
+        if not s.init.place_prior:
+            continue
+        t0 = time.perf_counter()
+        prior, how = map_place_prior(map_dir, s, device=device)
+        say(f"place prior {how}: {len(prior.xy):,} cells, {time.perf_counter() - t0:.1f} s")
 
 
 def _execute(jobs, workers: int, backend: str, address: str | None):

@@ -390,6 +390,15 @@ CASES: list[tuple[str, list[str], dict]] = [
     ("rangemcl import-mesh {d}/ground.ply --out {d}/a_file", ["a_file", "not a folder"], {}),
     ("rangemcl import-mesh {d}/ground.ply --out {d}/seq", ["seq", "holds no map"], {}),
     ("rangemcl import-mesh {d}/ground.ply --out {d}/map", ["map", "--overwrite"], {}),
+    # --- rangemcl place-prior: bad map folders, settings, budget
+    ("rangemcl place-prior {d}/nope", ["nope", "does not exist"], {}),
+    ("rangemcl place-prior {d}/map", ["tiles/0_0.npz", "truncated"], {"map/tiles/0_0.npz": cut(10)}),
+    (
+        "rangemcl place-prior {d}/map --config " + CFG,
+        ["c.yaml", "init.prior_cel_m"],
+        {"c.yaml": "init:\n  prior_cel_m: 1\n"},
+    ),
+    ("rangemcl place-prior {d}/map --map-memory -5", ["--map-memory", "-5"], {}),
     # --- rangemcl map-info: bad map folders
     ("rangemcl map-info {d}/nope", ["nope", "does not exist"], {}),
     ("rangemcl map-info {d}/a_file", ["a_file", "not a folder"], {}),

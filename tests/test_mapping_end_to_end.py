@@ -198,8 +198,25 @@ def test_sigterm_keeps_the_work_for_resume_and_stops_the_workers(drive, tmp_path
     assert fresh.returncode == 0, fresh.stderr
     names = sorted(str(p.relative_to(tmp_path / "fresh")) for p in (tmp_path / "fresh").rglob("*.npz"))
     assert "ground.npz" in names and any(n.startswith("tiles/") for n in names)
+    assert "place_prior.npz" in names  # rendered as the build's last step
     for name in (*names, "tiles.json"):
-        assert (tmp_path / "m" / name).read_bytes() == (tmp_path / "fresh" / name).read_bytes(), name
+        _same_file(tmp_path / "m" / name, tmp_path / "fresh" / name)
+    # the place prior was the build's last step: the localizer and `rangemcl place-prior` find it stored
+    assert "place prior built" in fresh.stdout
+    from rangemcl.mcl import build_localizer
+
+    loc = build_localizer(MeshMap.load(tmp_path / "fresh"), threads=2)
+    loc.place_prior()
+    assert loc.prior_source == "loaded"
+    again = subprocess.run(
+        [sys.executable, "-c", code, "place-prior", str(tmp_path / "fresh")], capture_output=True, text=True
+    )
+    assert again.returncode == 0 and "place prior loaded" in again.stdout, again.stderr
+    missing = subprocess.run(
+        [sys.executable, "-c", code, "place-prior", str(tmp_path / "nope")], capture_output=True, text=True
+    )
+    assert missing.returncode == 2 and len(missing.stderr.strip().splitlines()) == 1
+    assert "nope" in missing.stderr
 
 
 def _state(pid: int) -> str:
@@ -272,7 +289,27 @@ def _same_map(out: Path, reference: Path) -> None:
     )
     assert any(name.startswith("tiles/") for name in names)
     for name in names:
-        assert (out / name).read_bytes() == (reference / name).read_bytes(), name
+        _same_file(out / name, reference / name)
+
+
+def _same_file(a: Path, b: Path) -> None:
+    """Byte for byte; the place prior's arrays and key so (its file records how long it took too)."""
+    if a.name != "place_prior.npz":
+        assert a.read_bytes() == b.read_bytes(), a.name
+        return
+    import json
+
+    import numpy as np
+
+    with np.load(a) as za, np.load(b) as zb:
+        assert sorted(za.files) == sorted(zb.files)
+        for k in za.files:
+            if k == "meta":
+                ma, mb = json.loads(str(za[k])), json.loads(str(zb[k]))
+                ma.pop("build_s"), mb.pop("build_s")
+                assert ma == mb
+            else:
+                assert za[k].tobytes() == zb[k].tobytes(), k
 
 
 @pytest.mark.parametrize(

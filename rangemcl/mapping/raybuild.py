@@ -16,12 +16,16 @@ from __future__ import annotations
 
 import contextlib
 import io
+import os
 import resource
+import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from rangemcl.errors import InputError
 from rangemcl.pool import descendants_die_with_me
+
+_OWNER_VAR = "RANGEMCL_RAY_OWNER"  # marks the processes of a local Ray instance this build started
 
 
 def _ray():
@@ -82,7 +86,23 @@ def run_tiles(
     with contextlib.ExitStack() as stack:
         # a local instance's processes die with this one, even when it is killed outright
         watchdog = stack.enter_context(descendants_die_with_me()) if started else None
+        if watchdog is not None and address is None:
+            stack.enter_context(_owner_mark(watchdog))
         yield from _run(ray, jobs, write, work_dir, workers, address, via_reader, started, watchdog)
+
+
+@contextlib.contextmanager
+def _owner_mark(watchdog) -> Iterator[None]:
+    """An environment entry that every process of the local Ray instance inherits, named to the watchdog:
+    a worker the raylet forks as this process dies is orphaned before the watchdog's next look, and its
+    command line may still be the raylet's; its environment carries the mark from the fork on."""
+    token = uuid.uuid4().hex
+    os.environ[_OWNER_VAR] = token
+    watchdog.also(f"{_OWNER_VAR}={token}")
+    try:
+        yield
+    finally:
+        os.environ.pop(_OWNER_VAR, None)
 
 
 def _run(ray, jobs, write, work_dir, workers, address, via_reader, started, watchdog):

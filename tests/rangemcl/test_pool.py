@@ -3,6 +3,7 @@ interrupted block stops its workers at once instead of waiting for their jobs.""
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import os
 import time
@@ -97,3 +98,66 @@ def test_a_stop_while_workers_spawn_waits_for_them(tmp_path):
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == "stopped after 2 workers"
     assert "Traceback" not in r.stderr, r.stderr
+
+
+_ORPHANS = r"""
+import os, signal, subprocess, sys, time
+from rangemcl.pool import descendants_die_with_me
+
+mark, pids = sys.argv[1], sys.argv[2]
+with descendants_die_with_me(interval_s=60.0) as dog:  # no look after the marker's: only it finds them
+    dog.also(mark)
+    time.sleep(0.5)
+    spawned = []
+    for env in ({**os.environ, "ORPHAN_MARK": mark.split("=", 1)[1]}, dict(os.environ)):
+        # a process whose parent exits at once: orphaned before the watchdog ever looks at it
+        out = subprocess.run(
+            [sys.executable, "-c",
+             "import os, subprocess, sys; "
+             "p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(120)'], "
+             "start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL); print(p.pid)"],
+            env=env, capture_output=True, text=True, check=True)
+        spawned.append(out.stdout.strip())
+    with open(pids, "w") as f:
+        f.write(" ".join(spawned))
+    os.kill(os.getpid(), signal.SIGKILL)
+"""
+
+
+def test_the_watchdog_kills_an_orphan_by_its_inherited_environment(tmp_path):
+    """A process whose parent died before the watchdog looked is no longer below the killed process; an
+    environment entry it inherited, named with ``also``, still finds it. One without the entry (the
+    control) lives on: without the marker the watchdog would have missed both."""
+    import signal
+    import subprocess
+    import sys
+    import uuid
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("the watchdog reads /proc")
+    mark = f"ORPHAN_MARK={uuid.uuid4().hex}"
+    pids_file = tmp_path / "pids"
+    run = subprocess.run(
+        [sys.executable, "-c", _ORPHANS, mark, str(pids_file)], capture_output=True, text=True
+    )
+    assert run.returncode == -signal.SIGKILL, run.stderr
+    marked, control = (int(p) for p in pids_file.read_text().split())
+    try:
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline and _alive(marked):
+            time.sleep(0.05)
+        assert not _alive(marked)
+        assert _alive(control)
+    finally:
+        for pid in (marked, control):
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGKILL)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            state = f.read().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state not in ("Z", "X")

@@ -4,6 +4,7 @@ resumable, and runs on a local Ray instance; trial lists by their definitions.""
 from __future__ import annotations
 
 import csv
+import json
 import re
 from dataclasses import replace
 
@@ -79,6 +80,12 @@ def test_quick_suite_writes_results_table_and_figure_and_resumes(tiny_map, tmp_p
     assert "| sensor |" in table and "vlp-16" in table and "paper_location_rmse_m" in table
     assert "| not_converged | converged_failed |" in table and "| vlp-16 | 1 | 1 | 0 | 0 |" in table
     assert (out / "sensors.png").stat().st_size > 1000
+    # the place prior was rendered (or found) once before the trials, and every trial loaded it
+    assert sum("place prior" in line for line in lines) == 1
+    for r in rows:
+        assert json.loads((out / "trials" / r["key"] / "summary.json").read_text())["place_prior"][
+            "source"
+        ] == ("loaded")
     again: list[str] = []
     rows2 = run_suite("sensors", out, tiny_map, quick=True, config=CONFIG, workers=2, say=again.append)
     assert "2 already done" in again[0] and len(rows2) == 2
