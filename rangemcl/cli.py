@@ -469,10 +469,11 @@ def place_prior_cmd(
 
 @app.command("map-info")
 def map_info(map_dir: Path = typer.Argument(..., help="A map folder.")) -> None:
-    """Print a map's size, triangles, tiles and extent."""
-    from rangemcl.mapping.meshmap import MeshMap, map_summary
+    """Print a map's size, triangles, tiles, extent, coarse level and place prior; every tile is read and
+    checked, one at a time (a map of format 2 is never held whole)."""
+    from rangemcl.mapping.info import map_info as summarize
 
-    summary = map_summary(MeshMap.load(map_dir))
+    summary = summarize(map_dir)
     width = max(len(k) for k in summary)
     for key, value in summary.items():
         typer.echo(f"{key:<{width}}  {value}")

@@ -212,6 +212,10 @@ def test_sigterm_keeps_the_work_for_resume_and_stops_the_workers(drive, tmp_path
         [sys.executable, "-c", code, "place-prior", str(tmp_path / "fresh")], capture_output=True, text=True
     )
     assert again.returncode == 0 and "place prior loaded" in again.stdout, again.stderr
+    info = subprocess.run(
+        [sys.executable, "-c", code, "map-info", str(tmp_path / "fresh")], capture_output=True, text=True
+    )
+    assert info.returncode == 0 and f"{len(loc.prior.xy)} cells of 2 m" in info.stdout, info.stderr
     missing = subprocess.run(
         [sys.executable, "-c", code, "place-prior", str(tmp_path / "nope")], capture_output=True, text=True
     )

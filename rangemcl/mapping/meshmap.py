@@ -376,18 +376,7 @@ class MeshMap:
         counts, meta = doc["counts"], doc["meta"]
         if version == 1:
             return cls._load_v1(map_dir, counts, meta)
-        from rangemcl.mapping.store import INDEX_NAME, TileStore
-
-        store = TileStore.open(map_dir)
-        ipath = map_dir / INDEX_NAME
-        for what, found, key in (
-            ("tiles", len(store.entries), "tiles"),
-            ("vertices", store.n_vertices, "vertices"),
-            ("triangles", store.n_triangles, "triangles"),
-            ("ground vertices", sum(e.ground_vertices for e in store.entries), "ground_vertices"),
-        ):
-            if found != counts[key]:
-                raise InputError(f"{ipath}: lists {found} {what} but map.yaml says {counts[key]}")
+        store = open_checked_store(map_dir, counts)
         v, f, g, face_tile = store.read_all()
         ground, drive = _read_ground_and_drive(map_dir)
         return cls(
@@ -495,6 +484,24 @@ def read_map_yaml(map_dir: Path) -> tuple[int, dict]:
         raise InputError(f"{ypath}: 'meta' must be a mapping")
     doc["meta"] = meta
     return int(version), doc
+
+
+def open_checked_store(map_dir: Path, counts: dict):
+    """The tile index of a format-2 map folder (:class:`~rangemcl.mapping.store.TileStore`), its counts
+    checked against ``map.yaml``'s ``counts``."""
+    from rangemcl.mapping.store import INDEX_NAME, TileStore
+
+    store = TileStore.open(map_dir)
+    ipath = Path(map_dir) / INDEX_NAME
+    for what, found, key in (
+        ("tiles", len(store.entries), "tiles"),
+        ("vertices", store.n_vertices, "vertices"),
+        ("triangles", store.n_triangles, "triangles"),
+        ("ground vertices", sum(e.ground_vertices for e in store.entries), "ground_vertices"),
+    ):
+        if found != counts[key]:
+            raise InputError(f"{ipath}: lists {found} {what} but map.yaml says {counts[key]}")
+    return store
 
 
 def _read_ground_and_drive(map_dir: Path) -> tuple[GroundGrid, np.ndarray | None]:

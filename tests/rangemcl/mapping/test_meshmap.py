@@ -606,3 +606,37 @@ def test_map_upgrade_gives_the_same_rays_and_survives_a_kill(tmp_path, save_v1):
         ranges.append(c.cast(origins, dirs, 500.0).ranges)
     assert np.isfinite(ranges[0]).sum() > 200
     np.testing.assert_array_equal(ranges[0], ranges[1])
+
+
+def test_map_info_reads_a_tiled_map_one_tile_at_a_time(tmp_path, save_v1):
+    """``rangemcl map-info``: of a map of format 2, the same counts and ground shares as the whole map's
+    summary (border vertices counted in each tile file), its coarse level and place prior, and the size of
+    every file; of a map of format 1, the whole map's summary."""
+    from rangemcl.mapping.coarse import add_coarse_level
+    from rangemcl.mapping.info import map_info
+    from rangemcl.mapping.meshmap import map_summary
+
+    m = make_map()
+    d = tmp_path / "v2"
+    m.save(d)
+    info = map_info(d)
+    whole = map_summary(MeshMap.load(d))
+    assert info["triangles"] == whole["triangles"] and info["tiles"] == whole["tiles"]
+    assert info["size_m"] == whole["size_m"] and info["extent_m"] == whole["extent_m"]
+    assert info["triangles_per_tile"] == whole["triangles_per_tile"]
+    assert info["ground_grid"] == whole["ground_grid"]
+    store = TileStore.open(d)
+    assert info["vertices"].startswith(f"{store.n_vertices} ")
+    g = sum(e.ground_vertices for e in store.entries) / store.n_vertices
+    assert info["ground_vertex_share"] == round(g, 4)
+    assert abs(info["ground_triangle_share"] - whole["ground_triangle_share"]) < 1e-9  # faces are not shared
+    assert info["bytes_on_disk"] == sum(p.stat().st_size for p in d.rglob("*") if p.is_file())
+    assert info["coarse_level"].startswith("none") and info["place_prior"].startswith("none")
+    assert info["index_open_ms"] >= 0 and info["format_version"] == 2
+    add_coarse_level(d, 0.2)
+    info = map_info(d)
+    assert info["coarse_level"].startswith(f"{len(store.entries)} tiles")
+    assert info["bytes_on_disk"] == sum(p.stat().st_size for p in d.rglob("*") if p.is_file())
+    v1 = tmp_path / "v1"
+    save_v1(m, v1)
+    assert map_info(v1) == map_summary(MeshMap.load(v1))
