@@ -106,6 +106,7 @@ def _bag_options(
     return opt if given else None
 
 
+_PRIOR_STEP_MB = 500.0  # the map held while build-map and import-mesh render the prior (tile by tile)
 _PRIOR = typer.Option(
     True, help="Render the place prior of global localization into the map (--no-prior: on first use)."
 )
@@ -337,7 +338,7 @@ def build_map(
             f"{r.points_nonfinite} NaN/inf points"
         )
     if prior:
-        _place_prior_step(out)
+        _place_prior_step(out, map_memory=_PRIOR_STEP_MB)
 
 
 @app.command()
@@ -417,7 +418,7 @@ def import_mesh_cmd(
         typer.echo(f"wrote {out}: {m.n_triangles:,} triangles in {len(m.tiles)} tiles")
         del m
     if prior:
-        _place_prior_step(out)
+        _place_prior_step(out, map_memory=_PRIOR_STEP_MB)
 
 
 def _place_prior_step(

@@ -12,6 +12,7 @@ It stays a ``ProcessPoolExecutor``, so a worker that dies (killed for memory, sa
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
 import multiprocessing
@@ -142,10 +143,13 @@ def kill_point(name: str) -> None:
 
 # The watchdog of :func:`descendants_die_with_me`, run as ``python -c``: it watches the process that
 # started it (argv[1], its parent) and, every interval (argv[2] s), notes that process's descendants (pid
-# and start time, from /proc). When its stdin closes it looks whether that process still lives: if it
-# does, the work ended normally and the watchdog just exits; if not (killed, SIGKILL included), it kills
-# every process it last saw below it that is still the same process (same start time), and every process
-# whose command line holds one of the markers written to its stdin (a line each), then exits.
+# and start time, from /proc). Its stdin carries markers (a line each) and, at a normal end of the block,
+# an end line (a NUL byte) before it closes. Its stdin closing without that line, or the parent's pid
+# changing (a forked child may keep the pipe open), means the parent died (killed, SIGKILL included): it
+# kills every process it last saw below it that is still the same process (same start time), and every
+# process whose command line or environment holds one of the markers, then exits. (The closed pipe is not
+# checked against the parent's pid: a dying process closes its files before it is reparented, so for a
+# moment a killed parent still looked alive, and the watchdog took the death for a normal end.)
 _WATCHDOG = r"""
 import os, select, signal, sys, time
 watched, interval = int(sys.argv[1]), float(sys.argv[2])
@@ -191,20 +195,24 @@ def marked(rows):
                 found[p] = start
                 break
     return found
-last, markers = {}, []
+last, markers, buf, eof = {}, [], b"", False
+fd = sys.stdin.fileno()
 while True:
-    ready, _, _ = select.select([sys.stdin], [], [], interval)
-    line = sys.stdin.readline() if ready else ""
-    if line.strip():
-        markers.append(line.strip())
+    ready, _, _ = select.select([] if eof else [fd], [], [], interval)
+    if ready:
+        chunk = os.read(fd, 65536)
+        buf, eof = buf + chunk, not chunk
+    *lines, buf = buf.split(b"\n")
+    for line in lines:
+        if line == b"\0":  # the block ended normally
+            sys.exit(0)
+        if line.strip():
+            markers.append(line.strip().decode(errors="replace"))
     rows = table()
-    alive = os.getppid() == watched  # a dead parent (even one not yet reaped) has handed us to another
-    if alive and not (ready and not line):
+    if not eof and os.getppid() == watched:  # a dead parent (even one not yet reaped) has handed us on
         last.update(below(rows, [watched]))
         last = {p: s for p, s in last.items() if rows.get(p, (0, None))[1] == s}
         continue
-    if alive:  # stdin closed by a living process: a normal end
-        sys.exit(0)
     # what lives of the last look, what carries a marker, and what those started since: stopped first
     # (so that none starts another meanwhile) until the set stops growing, then killed
     doomed = {}
@@ -229,9 +237,16 @@ class _Watchdog:
     def also(self, marker: str) -> None:
         """Kill too, on this process's death, every process whose command line or environment holds
         ``marker`` (for those started after the watchdog's last look whose parent died first)."""
-        if self._pipe is not None and marker.strip() and "\n" not in marker:
+        if self._pipe is not None and marker.strip() and "\n" not in marker and "\0" not in marker:
             self._pipe.write(marker.strip().encode() + b"\n")
             self._pipe.flush()
+
+    def end(self) -> None:
+        """The block ended normally: the watchdog exits without killing anything."""
+        if self._pipe is not None:
+            with contextlib.suppress(OSError):  # a watchdog already gone
+                self._pipe.write(b"\0\n")
+                self._pipe.flush()
 
 
 @contextmanager
@@ -253,8 +268,11 @@ def descendants_die_with_me(interval_s: float = 0.2) -> Iterator[_Watchdog]:
         stdin=subprocess.PIPE,
         start_new_session=True,  # a Ctrl-C to the terminal's group is the driver's to handle, not its
     )
+    watchdog = _Watchdog(dog.stdin)
     try:
-        yield _Watchdog(dog.stdin)
+        yield watchdog
     finally:
-        dog.stdin.close()
+        watchdog.end()
+        with contextlib.suppress(OSError):
+            dog.stdin.close()
         dog.wait()

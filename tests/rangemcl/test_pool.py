@@ -161,3 +161,52 @@ def _alive(pid: int) -> bool:
     except OSError:
         return False
     return state not in ("Z", "X")
+
+
+_BLOCK = r"""
+import signal, subprocess, sys, time
+from rangemcl.pool import descendants_die_with_me
+
+how, pids = sys.argv[1], sys.argv[2]
+with descendants_die_with_me(interval_s=0.05):
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    with open(pids, "w") as f:
+        f.write(str(child.pid))
+    time.sleep(0.5)  # the watchdog has seen it below us
+    if how == "kill":
+        import os
+        os.kill(os.getpid(), signal.SIGKILL)
+"""
+
+
+@pytest.mark.parametrize("how", ["end", "kill"])
+def test_the_watchdog_kills_descendants_only_when_its_process_dies(tmp_path, how):
+    """A child below the block's process: killed with that process's SIGKILL, left alone at the block's
+    normal end (repeated: the end and the death were once told apart by a race)."""
+    import signal
+    import subprocess
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("the watchdog reads /proc")
+    for _ in range(3):
+        pids_file = tmp_path / "pid"
+        run = subprocess.run(
+            [sys.executable, "-c", _BLOCK, how, str(pids_file)], capture_output=True, text=True
+        )
+        child = int(pids_file.read_text())
+        try:
+            if how == "kill":
+                assert run.returncode == -signal.SIGKILL, run.stderr
+                deadline = time.monotonic() + 5.0
+                while time.monotonic() < deadline and _alive(child):
+                    time.sleep(0.05)
+                assert not _alive(child)
+            else:
+                assert run.returncode == 0, run.stderr
+                time.sleep(0.5)
+                assert _alive(child)
+        finally:
+            with contextlib.suppress(OSError):
+                os.kill(child, signal.SIGKILL)
