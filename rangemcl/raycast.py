@@ -135,6 +135,7 @@ class MeshInfo:
     dropped_degenerate: int
     face_map: np.ndarray  # (n_faces,) int32: index of each kept face in the faces given to add_mesh
     removed: bool = False  # taken out of the scene by RayCaster.remove_mesh (its handle stays unused)
+    bounds: np.ndarray | None = None  # (6,) xmin, ymin, zmin, xmax, ymax, zmax of its vertices (own frame)
 
 
 @dataclass
@@ -296,6 +297,8 @@ class RayCaster:
         ] = []  # inverse pose per mesh as Warp's (px, py, pz, qx, qy, qz, qw)
         self._ids: wp.array | None = None
         self._inv: tuple[wp.array, wp.array] | None = None  # inverse poses, moved flags
+        self._region_cache: tuple | None = None  # scene_within's boxes and arrays of the live meshes
+        self.meshes_cast = 0  # meshes the last launch within a region visited (diagnostics)
         self._live = np.zeros(0, np.int32)  # handle of each mesh in the arrays the kernels see
         self._lock = threading.Lock()
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
@@ -318,7 +321,10 @@ class RayCaster:
         v, f, kept = clean_mesh(name, vertices, faces)
         with wp.ScopedDevice(self.device):
             mesh = wp.Mesh(points=wp.array(v, dtype=wp.vec3), indices=wp.array(f.ravel(), dtype=wp.int32))
-        return BuiltMesh(mesh, MeshInfo(name, False, len(v), len(f), int(len(faces) - len(kept)), kept))
+        bounds = np.concatenate([v.min(axis=0), v.max(axis=0)]).astype(np.float64)
+        return BuiltMesh(
+            mesh, MeshInfo(name, False, len(v), len(f), int(len(faces) - len(kept)), kept, bounds=bounds)
+        )
 
     def insert_mesh(self, built: BuiltMesh, *, movable: bool = False, pose=None) -> int:
         """Put a mesh from :meth:`build_mesh` in the scene (the thread that casts); returns its handle."""
@@ -331,6 +337,7 @@ class RayCaster:
             self._inv_xforms.append(np.array([0, 0, 0, 0, 0, 0, 1.0]))
             self._ids = None
             self._inv = None
+            self._region_cache = None
             handle = len(self._meshes) - 1
         if pose is not None:
             self.set_pose(handle, pose)
@@ -356,6 +363,7 @@ class RayCaster:
             info.removed = True
             self._ids = None
             self._inv = None
+            self._region_cache = None
 
     def set_pose(self, handle: int, T_world_mesh) -> None:
         """Place a mesh rigidly in the world (4×4 homogeneous, rotation part orthonormal)."""
@@ -382,6 +390,7 @@ class RayCaster:
             self._poses[h] = Tk
             self._inv_xforms[h] = xf
         self._inv = None
+        self._region_cache = None
 
     def update_vertices(self, handle: int, vertices) -> None:
         """Replace a mesh's vertex positions (same count and faces) and refit its BVH."""
@@ -394,6 +403,8 @@ class RayCaster:
         mesh = self._meshes[handle]
         mesh.points.assign(wp.array(v, dtype=wp.vec3, device=self.device))
         mesh.refit()
+        info.bounds = np.concatenate([v.min(axis=0), v.max(axis=0)]).astype(np.float64)
+        self._region_cache = None
 
     def scene_arrays(self) -> tuple[wp.array, wp.array, wp.array]:
         """The scene's meshes as the kernels see them: BVH ids, inverse poses, moved flags (mesh ``k`` of
@@ -415,6 +426,47 @@ class RayCaster:
                 wp.array(moved, dtype=wp.int32, device=self.device),
             )
         return self._ids, *self._inv
+
+    def scene_within(self, region) -> tuple[wp.array, wp.array, wp.array, np.ndarray]:
+        """:meth:`scene_arrays` of the meshes that a ray within ``region`` can hit, and their handles:
+        ``region`` is a world box ``(6,)`` (xmin, ymin, zmin, xmax, ymax, zmax) that holds every ray of the
+        launch from its origin to its end. A mesh whose box lies outside it cannot be hit, so the kernels
+        need not visit it (a map held as many tiles: the tiles far from the particles); meshes placed away
+        from the identity pose are always kept. Exact: the hits are those of the whole scene."""
+        with self._lock:
+            ids, inv, moved = self.scene_arrays()
+            live = self._live
+            if region is None or not np.isfinite(region).all():
+                return ids, inv, moved, live
+            if self._region_cache is None:
+                b = np.array(
+                    [
+                        self._info[h].bounds
+                        if self._info[h].bounds is not None
+                        else [-np.inf] * 3 + [np.inf] * 3
+                        for h in live
+                    ],
+                    np.float64,
+                ).reshape(-1, 6)
+                self._region_cache = (b, moved.numpy().astype(bool), ids.numpy(), inv.numpy())
+            b, is_moved, ids_np, inv_np = self._region_cache
+        r = np.asarray(region, np.float64)
+        pad = 1e-3 + 1e-6 * np.abs(r).max()  # float32 rays: a hit exactly on the region's face still counts
+        r = np.concatenate([r[:3] - pad, r[3:] + pad])
+        keep = is_moved | ((b[:, :3] <= r[3:]) & (b[:, 3:] >= r[:3])).all(axis=1)
+        self.meshes_cast = int(keep.sum())
+        if keep.all():
+            return ids, inv, moved, live
+        if not keep.any():  # nothing within reach: one mesh all the same (the kernels need one); no hit
+            keep[0] = True
+        sel = np.flatnonzero(keep)
+        dev = self.device
+        return (
+            wp.array(ids_np[sel], dtype=wp.uint64, device=dev),
+            wp.array(inv_np[sel], dtype=wp.transform, device=dev),
+            wp.array(is_moved[sel].astype(np.int32), dtype=wp.int32, device=dev),
+            live[sel],
+        )
 
     @property
     def live_handles(self) -> np.ndarray:
@@ -453,9 +505,18 @@ class RayCaster:
         normal_out = np.zeros((n, 3), np.float32) if normals else np.zeros((1, 3), np.float32)
         if n == 0:
             return RayHits(ranges, mesh_ids, face_ids, normal_out if normals else None)
-        with self._lock:
-            ids, inv, moved = self.scene_arrays()
-            live = self._live
+        if only is None:
+            ends = o + d * np.where(np.isfinite(r), r, 0.0)[:, None] if len(o) == n else o + d * r.max()
+            region = np.concatenate(
+                [np.minimum(o.min(axis=0), ends.min(axis=0)), np.maximum(o.max(axis=0), ends.max(axis=0))]
+            )
+            if not np.isfinite(r).all():
+                region = None  # an endless ray: every mesh
+            ids, inv, moved, live = self.scene_within(region)
+        else:
+            with self._lock:
+                ids, inv, moved = self.scene_arrays()
+                live = self._live
         if only is not None:
             self._check_handle(only)
             k = int(np.searchsorted(live, only))
@@ -491,7 +552,7 @@ class RayCaster:
             ranges, mesh_ids, face_ids, normal_out = (a.numpy() for a in outs)
         if only is not None:
             mesh_ids[mesh_ids >= 0] = only
-        elif len(live) != len(self._meshes):  # some were removed: kernel indices to handles
+        else:  # kernel indices to handles (some meshes removed, or left out of the launch)
             hit = mesh_ids >= 0
             mesh_ids[hit] = live[mesh_ids[hit]]
         return RayHits(ranges, mesh_ids, face_ids, normal_out if normals else None)

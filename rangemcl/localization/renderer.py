@@ -157,6 +157,8 @@ class ParticleRenderer:
         if len(st) != len(r):
             raise InputError(f"scan rays: {len(st)} structure flags for {len(r)} rays")
         dev = self.caster.device
+        # the farthest any ray of this scan reaches from its particle's sensor position
+        self._reach = float(np.linalg.norm(o, axis=1).max() + r.max() + self.margin_m)
         self._rays = (
             wp.array(d / np.linalg.norm(d, axis=1, keepdims=True), dtype=wp.vec3, device=dev),
             wp.array(o, dtype=wp.vec3, device=dev),
@@ -195,7 +197,15 @@ class ParticleRenderer:
         if n == 0:
             return out
         c = self.caster
-        ids, inv, moved = c.scene_arrays()
+        # every ray of the launch lies within its particle's reach: the meshes beyond are not visited
+        reach = self._reach
+        region = np.concatenate(
+            [
+                [p[:, 0].min() - reach, p[:, 1].min() - reach, z.min() - reach],
+                [p[:, 0].max() + reach, p[:, 1].max() + reach, z.max() + reach],
+            ]
+        )
+        ids, inv, moved, _handles = c.scene_within(region)
         dev = c.device
         cpu = dev == "cpu"
         inputs = [

@@ -994,3 +994,45 @@ def test_a_removed_mesh_is_gone_and_the_other_handles_stay():
         c.cast(o, d, only=handles[0])
     assert c.add_mesh(*boxes[0]) == 3
     assert (c.cast(o, d).mesh_ids == 3).all()
+
+
+def test_meshes_out_of_the_rays_reach_are_not_visited_and_nothing_changes():
+    """A map held as many tiles: a launch visits only the meshes whose box its rays can reach (a moved mesh
+    always), and every hit is the brute force's over the union of all meshes; rays that reach every mesh
+    (or endless ones) visit all."""
+    rng = np.random.default_rng(5)
+    caster = RayCaster("cpu", threads=2)
+    parts = []
+    for i in range(5):
+        for j in range(5):
+            v, f = meshgen.box(np.array([6.0, 6.0, 4.0]), np.array([20.0 * i, 20.0 * j, 2.0]), cell_m=2.0)
+            caster.add_mesh(v, f)
+            parts.append((f32(v), f))
+    v_all, f_all = meshgen.merge(parts)
+    # short rays from near the middle box: they reach the 3 x 3 boxes around it at most
+    o = np.array([40.0, 40.0, 2.0]) + rng.uniform(-6.0, 6.0, (700, 3)) * [1, 1, 0.2]
+    o[:, 0] += np.where(o[:, 0] > 40.0, 4.0, -4.0)  # outside the middle box
+    d = rng.normal(size=(700, 3)) * [1.0, 1.0, 0.2]
+    hits = caster.cast(o, d, 15.0)
+    assert 1 <= caster.meshes_cast <= 9
+    ref = brute_force(v_all, f_all, f32(o), f32(d / np.linalg.norm(d, axis=1, keepdims=True)))
+    ref_t = np.where(ref["t"] <= 15.0, ref["t"], np.inf)
+    np.testing.assert_allclose(hits.ranges, ref_t, rtol=1e-5, atol=1e-5)
+    assert hits.hit.sum() > 100
+    owner = np.repeat(np.arange(len(parts)), [len(f) for _, f in parts])
+    assert (hits.mesh_ids[hits.hit] == owner[ref["face"][hits.hit]]).all()  # handles, not launch indices
+    caster.cast(o, d, 200.0)
+    assert caster.meshes_cast == len(parts)
+    # a moved mesh is always visited: one far away, placed where the rays go
+    v, f = meshgen.box(np.array([1.0, 1.0, 1.0]), np.zeros(3), cell_m=1.0)
+    T = np.eye(4)
+    T[:3, 3] = [40.0, 47.0, 2.0]
+    h = caster.add_mesh(v + [500.0, 0.0, 0.0], f, movable=True, pose=T @ _shift(-500.0))
+    up = caster.cast(np.array([[40.0, 44.0, 2.0]]), np.array([[0.0, 1.0, 0.0]]), 15.0)
+    assert up.mesh_ids[0] == h and abs(up.ranges[0] - 2.5) < 1e-4
+
+
+def _shift(x: float) -> np.ndarray:
+    T = np.eye(4)
+    T[0, 3] = x
+    return T
