@@ -386,6 +386,11 @@ def import_mesh_cmd(
     stream: bool = typer.Option(
         True, help="Read a binary triangle PLY in place, a block at a time (--no-stream: load it whole)."
     ),
+    drive: Path = typer.Option(
+        None,
+        help="Where the car drives ('x y' per line, or KITTI or TUM poses; e.g. simbed export-mesh "
+        "--route-out): global localization searches near it. Default: all of the mesh's ground.",
+    ),
     prior: bool = _PRIOR,
 ) -> None:
     """Turn any triangle mesh (e.g. a published range-mcl map) into a map folder (tiles, their coarse
@@ -401,6 +406,12 @@ def import_mesh_cmd(
         raise InputError(f"--coarse-ratio must lie in [0, 1], got {coarse_ratio}")
     check_output(out, overwrite=overwrite, kind="map", markers=MAP_MARKERS)  # before reading the mesh
     meta = {"source_mesh": str(mesh.resolve())}
+    drive_xy = None
+    if drive is not None:
+        from rangemcl.mapping.meshmap import read_drive_xy
+
+        drive_xy = read_drive_xy(drive)
+        meta["source_drive"] = str(drive.resolve())
     if stream and mesh.is_file() and ply_layout(mesh) is not None:
         # a binary triangle PLY: read in place, a block at a time (a mesh larger than memory imports too)
         if not (math.isfinite(tile_size) and tile_size > 0):
@@ -408,11 +419,18 @@ def import_mesh_cmd(
         work = out.absolute().parent / f".{out.name}.import"
         with output_folder(out, overwrite=overwrite, kind="map", markers=MAP_MARKERS):
             counts = import_mesh_streaming(
-                mesh, out, work_dir=work, tile_size_m=tile_size, coarse_ratio=coarse_ratio, meta=meta
+                mesh,
+                out,
+                work_dir=work,
+                tile_size_m=tile_size,
+                coarse_ratio=coarse_ratio,
+                meta=meta,
+                drive_xy=drive_xy,
             )
         typer.echo(f"wrote {out}: {counts['triangles']:,} triangles in {counts['tiles']} tiles")
     else:
         m = import_mesh(mesh, tile_size_m=tile_size, meta=meta)
+        m.drive_xy = drive_xy
         with output_folder(out, overwrite=overwrite, kind="map", markers=MAP_MARKERS):
             m.save(out, coarse_ratio=coarse_ratio)
         typer.echo(f"wrote {out}: {m.n_triangles:,} triangles in {len(m.tiles)} tiles")

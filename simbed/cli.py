@@ -164,15 +164,30 @@ def export_mesh(
     out: Path = typer.Option(..., help="PLY file to write."),
     scene: str = typer.Option("town_small", help="Scene name in scenes/ or an MJCF file."),
     variant: int = typer.Option(0, help="Parked-car variant to include."),
+    route_out: Path = typer.Option(
+        None,
+        help="Also write a route of the town's roads as waypoints ('x y' per line): where the car drives, "
+        "for `rangemcl import-mesh --drive`.",
+    ),
+    route: str = typer.Option("mapping", help="With --route-out: the route (mapping: every road)."),
 ) -> None:
     """Write the scene's true static geometry (the ground truth of map quality) as PLY."""
     from simbed.geometry import write_ply
     from simbed.world import World
 
     world = World(scene, variant=variant)
+    if route_out is not None:
+        from simbed.record import scene_route
+
+        r = scene_route(world, route)  # checked before anything is written
     v, f = world.static_triangles
     write_ply(out, v, f)
     typer.echo(f"wrote {out}: {len(f):,} triangles, {len(v):,} vertices")
+    if route_out is not None:
+        from rangemcl.atomic import atomic_write
+
+        atomic_write(route_out, "".join(f"{x:.3f} {y:.3f}\n" for x, y in r.points))
+        typer.echo(f"wrote {route_out}: route {route}, {len(r.points):,} points, {r.length_m / 1000:.1f} km")
 
 
 @app.command()

@@ -800,3 +800,43 @@ def _plain(x):
     if x is None or isinstance(x, bool | int | float | str):
         return x
     return str(x)
+
+
+def read_drive_xy(path, spacing_m: float = 1.0) -> np.ndarray:
+    """Where the car drives in a map without a mapping drive (an imported mesh), from a text file: ``x y``
+    per line (a waypoint file, ``simbed export-mesh --route-out``), or poses, KITTI (12 numbers a line) or
+    TUM (``t x y z qx qy qz qw``); thinned to a point every ``spacing_m``. Global localization spreads its
+    particles and renders its place prior within ``init.drive_radius_m`` of it. A malformed line is an
+    InputError naming the file and line."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as err:
+        why = err.strerror if isinstance(err, OSError) else "not a text file"
+        raise InputError(f"{path}: cannot read the drive ({why or err})") from None
+    rows = []
+    for n, raw in enumerate(text.splitlines(), 1):
+        line = raw.split("#")[0].replace(",", " ").strip()
+        if not line:
+            continue
+        try:
+            v = [float(x) for x in line.split()]
+        except ValueError:
+            raise InputError(f"{path}:{n}: expected numbers, got {raw.strip()!r}") from None
+        if len(v) in (2, 3):
+            xy = v[:2]
+        elif len(v) == 12:  # KITTI: a 3x4 matrix, row by row
+            xy = [v[3], v[7]]
+        elif len(v) == 8:  # TUM
+            xy = v[1:3]
+        else:
+            raise InputError(
+                f"{path}:{n}: expected 'x y', a KITTI pose (12 numbers) or a TUM pose (8), "
+                f"got {len(v)} numbers"
+            )
+        if not np.isfinite(xy).all():
+            raise InputError(f"{path}:{n}: not finite: {raw.strip()!r}")
+        rows.append(xy)
+    if len(rows) < 2:
+        raise InputError(f"{path}: a drive needs at least two points, found {len(rows)}")
+    return thin_path(np.asarray(rows, np.float64), spacing_m)

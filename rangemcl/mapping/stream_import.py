@@ -145,6 +145,7 @@ def import_mesh_streaming(
     layer_m: float = 0.3,
     ground_cell_m: float = 1.0,
     block: int = BLOCK,
+    drive_xy: np.ndarray | None = None,
 ) -> dict | None:
     """Write the map folder ``out_dir`` from the binary PLY ``path`` (module docstring); the same files as
     ``import_mesh(path).save(out_dir)``. Returns the counts of ``map.yaml``, or None when the file is not a
@@ -297,7 +298,7 @@ def import_mesh_streaming(
             out_dir,
             entries,
             ground=GroundGrid(g_origin, g_cell, heights),
-            drive_xy=None,
+            drive_xy=drive_xy,
             tile_size_m=tile_size_m,
             meta={**base, **(meta or {})},
         )

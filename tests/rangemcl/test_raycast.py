@@ -1027,7 +1027,7 @@ def test_meshes_out_of_the_rays_reach_are_not_visited_and_nothing_changes():
     v, f = meshgen.box(np.array([1.0, 1.0, 1.0]), np.zeros(3), cell_m=1.0)
     T = np.eye(4)
     T[:3, 3] = [40.0, 47.0, 2.0]
-    h = caster.add_mesh(v + [500.0, 0.0, 0.0], f, movable=True, pose=T @ _shift(-500.0))
+    h = caster.add_mesh(np.asarray(v) + np.array([500.0, 0.0, 0.0]), f, movable=True, pose=T @ _shift(-500.0))
     up = caster.cast(np.array([[40.0, 44.0, 2.0]]), np.array([[0.0, 1.0, 0.0]]), 15.0)
     assert up.mesh_ids[0] == h and abs(up.ranges[0] - 2.5) < 1e-4
 

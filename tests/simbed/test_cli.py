@@ -88,13 +88,45 @@ def test_unwritable_output(tmp_path):
 
 
 def test_export_mesh_is_the_static_scene(tmp_path):
+    """The static mesh, and the mapping route as waypoints: imported with it as the map's drive, global
+    localization searches near the roads only (the place prior over the roads, not the whole ground)."""
     out = tmp_path / "gt.ply"
-    r = simbed("export-mesh", "--scene", "town_small", "--out", str(out))
+    route = tmp_path / "route.txt"
+    r = simbed("export-mesh", "--scene", "town_small", "--out", str(out), "--route-out", str(route))
     assert r.returncode == 0, r.stderr
     mesh = trimesh.load(out, force="mesh")
     lo, hi = mesh.bounds
     assert hi[0] - lo[0] >= 190 and hi[1] - lo[1] >= 190  # the 200 m town
     assert len(mesh.faces) > 10_000
+    from simbed.record import scene_route
+    from simbed.world import World
+
+    world = World("town_small")
+    xy = np.loadtxt(route)
+    np.testing.assert_allclose(xy, scene_route(world, "mapping").points, atol=1e-3)
+    from simbed.routes import distance_to_roads
+
+    off = distance_to_roads(xy, world.graph)  # from the roads' centre lines: a lane, corners cut at junctions
+    assert np.median(off) < world.town.road_width_m / 2 and off.max() < world.town.road_width_m
+    from rangemcl.mapping.meshmap import MeshMap
+    from rangemcl.mcl import drivable_cells
+
+    maps = {}
+    for name, extra in (("with_drive", ["--drive", str(route)]), ("without", [])):
+        cmd = [sys.executable, "-m", "rangemcl.cli", "import-mesh", str(out), "--out", str(tmp_path / name)]
+        done = subprocess.run([*cmd, "--no-prior", *extra], capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr
+        maps[name] = MeshMap.load(tmp_path / name)
+    drive = maps["with_drive"].drive_xy
+    assert maps["without"].drive_xy is None and len(drive) > 100
+    steps = np.linalg.norm(np.diff(drive[:-1], axis=0), axis=1)
+    assert steps.min() >= 1.0 - 1e-9  # thinned to a point a metre (the last point kept as it is)
+    near = len(drivable_cells(maps["with_drive"]).corners)
+    assert (
+        0.2 * len(drivable_cells(maps["without"]).corners)
+        < near
+        < 0.8 * len(drivable_cells(maps["without"]).corners)
+    )
 
 
 def test_render_scene_and_scan(tmp_path):

@@ -640,3 +640,33 @@ def test_map_info_reads_a_tiled_map_one_tile_at_a_time(tmp_path, save_v1):
     v1 = tmp_path / "v1"
     save_v1(m, v1)
     assert map_info(v1) == map_summary(MeshMap.load(v1))
+
+
+def test_a_drive_file_reads_as_waypoints_kitti_or_tum_poses(tmp_path):
+    """``import-mesh --drive``: the same path from 'x y' lines, KITTI poses and TUM poses, thinned to a
+    point a metre; a malformed line names the file and line."""
+    from rangemcl.mapping.meshmap import read_drive_xy
+
+    t = np.linspace(0.0, 20.0, 81)
+    xy = np.column_stack([3.0 * t, np.sin(t)])
+    (tmp_path / "w.txt").write_text("# x y\n" + "".join(f"{x} {y}\n" for x, y in xy))
+    (tmp_path / "k.txt").write_text("".join(f"1 0 0 {x} 0 1 0 {y} 0 0 1 0.5\n" for x, y in xy))
+    (tmp_path / "t.txt").write_text(
+        "".join(f"{k * 0.1} {x} {y} 0.5 0 0 0 1\n" for k, (x, y) in enumerate(xy))
+    )
+    ref = read_drive_xy(tmp_path / "w.txt")
+    for name in ("k.txt", "t.txt"):
+        np.testing.assert_allclose(read_drive_xy(tmp_path / name), ref)
+    assert 30 < len(ref) < 81 and (np.linalg.norm(np.diff(ref[:-1], axis=0), axis=1) >= 1.0).all()
+    np.testing.assert_allclose(ref[[0, -1]], xy[[0, -1]])
+    (tmp_path / "bad.txt").write_text("1 2\n3 four\n")
+    with pytest.raises(InputError, match=r"bad\.txt:2"):
+        read_drive_xy(tmp_path / "bad.txt")
+    (tmp_path / "five.txt").write_text("1 2\n1 2 3 4 5\n")
+    with pytest.raises(InputError, match=r"five\.txt:2.*5 numbers"):
+        read_drive_xy(tmp_path / "five.txt")
+    (tmp_path / "one.txt").write_text("1 2\n")
+    with pytest.raises(InputError, match="at least two points"):
+        read_drive_xy(tmp_path / "one.txt")
+    with pytest.raises(InputError, match=r"nope\.txt"):
+        read_drive_xy(tmp_path / "nope.txt")
