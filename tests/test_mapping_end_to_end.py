@@ -391,6 +391,9 @@ def test_ray_tasks_on_another_node_read_the_chunks_through_the_driver(
     monkeypatch.setattr(raybuild, "run_tiles", functools.partial(raybuild.run_tiles, via_reader=True))
     out = tmp_path / "m"
     report = build_map(seq, out, MapSettings(), backend="ray")  # all cores, as `uninterrupted`
+    from rangemcl.mcl import map_place_prior
+
+    map_place_prior(out, map_memory_mb=500.0)  # the CLI's last step, as for `uninterrupted`
     _same_map(out, uninterrupted)
     peaks = [s["peak_rss_mb"] for s in report.tile_stats]  # every tile job (a margin's may end empty)
     assert len(peaks) >= report.tiles and min(peaks) > 50
