@@ -196,6 +196,37 @@ class ParticleRenderer:
         }
         if n == 0:
             return out
+        groups = self._groups(p)
+        if len(groups) == 1:
+            return self._launch(p, z, out, bins, float(agree_m), float(hist_top_m))
+        for idx in groups:  # particles far apart: each group casts only into the meshes near it
+            part = {k: (v[idx] if k != "hist" or bins else v) for k, v in out.items()}
+            got = self._launch(p[idx], z[idx], part, bins, float(agree_m), float(hist_top_m))
+            for k, v in got.items():
+                if k != "hist" or bins:
+                    out[k][idx] = v
+        return out
+
+    def _groups(self, p: np.ndarray) -> list[np.ndarray]:
+        """The particles in groups of nearby ones, where the scene holds many meshes (a map within a memory
+        budget: its tiles) and the particles are spread wider than their rays reach: a launch casts into
+        the meshes within reach of its particles, so a global search over a city-sized map casts each ray
+        into the few tiles near its particle, not into all of them. One group otherwise."""
+        reach = self._reach
+        span = np.ptp(p[:, :2], axis=0).max() if len(p) else 0.0
+        if len(self.caster.live_handles) <= 8 or span <= 4.0 * reach:
+            return [np.arange(len(p))]
+        cell = np.floor(p[:, :2] / (2.0 * reach)).astype(np.int64)
+        _, inverse = np.unique(cell, axis=0, return_inverse=True)
+        order = np.argsort(inverse.reshape(-1), kind="stable")
+        bounds = np.flatnonzero(np.diff(inverse.reshape(-1)[order])) + 1
+        return np.split(order, bounds)
+
+    def _launch(self, p, z, out, bins: int, agree_m: float, hist_top_m: float) -> dict:
+        n = len(p)
+        p = np.ascontiguousarray(p)
+        z = np.ascontiguousarray(z)
+        out = {k: np.ascontiguousarray(v) for k, v in out.items()}
         c = self.caster
         # every ray of the launch lies within its particle's reach: the meshes beyond are not visited
         reach = self._reach
@@ -218,8 +249,8 @@ class ParticleRenderer:
             self.margin_m,
             self.cap_m,
             self.cap_beyond_m,
-            float(agree_m),
-            float(hist_top_m),
+            agree_m,
+            hist_top_m,
         ]
         names = ("mean", "agree", "beyond", "structure", "hist")
         if cpu:  # the kernel writes into the numpy arrays in place

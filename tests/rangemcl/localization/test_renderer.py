@@ -87,3 +87,30 @@ def test_bad_input(scene):
     with pytest.raises(InputError, match="margin"):
         ParticleRenderer(caster, margin_m=0)
     assert model.mean_residuals(np.zeros((0, 3)), z).shape == (0,)
+
+
+def test_particles_far_apart_cast_in_groups_with_the_same_scores():
+    """A map held as many tiles and particles spread over all of it (a global search within a memory
+    budget): the particles are scored in groups of nearby ones, each group's rays cast into the tiles near
+    it only, and every score (histogram included) is what one launch over all tiles gives."""
+    rng = np.random.default_rng(3)
+    caster = RayCaster("cpu", threads=2)
+    for i in range(6):
+        for j in range(6):
+            v, f = meshgen.box(np.array([8.0, 8.0, 5.0]), np.array([40.0 * i, 40.0 * j, 2.5]), cell_m=2.0)
+            caster.add_mesh(v, f)
+    renderer = ParticleRenderer(caster, margin_m=2.0, cap_m=1.0)
+    dirs = rng.normal(size=(60, 3)) * [1.0, 1.0, 0.15]
+    renderer.set_scan(dirs / np.linalg.norm(dirs, axis=1, keepdims=True), rng.uniform(2.0, 12.0, 60))
+    particles = np.column_stack(
+        [rng.uniform(-10, 210, 400), rng.uniform(-10, 210, 400), rng.uniform(-3, 3, 400)]
+    )
+    z = np.full(400, 1.7)
+    groups = renderer._groups(particles)
+    assert len(groups) > 10 and sorted(np.concatenate(groups)) == list(range(400))
+    got = renderer.scores(particles, z, hist_bins=8, hist_top_m=20.0)
+    renderer._groups = lambda p: [np.arange(len(p))]  # one launch over every tile
+    ref = renderer.scores(particles, z, hist_bins=8, hist_top_m=20.0)
+    for k in ("mean", "agree", "beyond", "structure", "hist"):
+        np.testing.assert_array_equal(got[k], ref[k], err_msg=k)
+    assert (ref["agree"] > 0).sum() > 20  # some particles do see a box
