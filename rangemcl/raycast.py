@@ -29,6 +29,7 @@ import numpy as np
 import warp as wp
 
 from rangemcl.errors import InputError
+from rangemcl.mapping.heap import trim_freed_memory
 from rangemcl.transforms import invert_rigid, quat_from_matrix
 
 wp.config.log_level = wp.LOG_ERROR  # no banner, no missing-driver notice on CPU machines
@@ -133,9 +134,17 @@ class MeshInfo:
     n_vertices: int
     n_faces: int
     dropped_degenerate: int
-    face_map: np.ndarray  # (n_faces,) int32: index of each kept face in the faces given to add_mesh
+    kept_faces: np.ndarray | None  # (n_faces,) int32 indices of the faces kept; None: all were kept
     removed: bool = False  # taken out of the scene by RayCaster.remove_mesh (its handle stays unused)
     bounds: np.ndarray | None = None  # (6,) xmin, ymin, zmin, xmax, ymax, zmax of its vertices (own frame)
+
+    @property
+    def face_map(self) -> np.ndarray:
+        """``(n_faces,)`` int32: index of each kept face in the faces given to add_mesh (made on demand: a
+        map's tiles rarely drop a face, and the identity would take 4 bytes a triangle)."""
+        if self.kept_faces is None:
+            return np.arange(self.n_faces, dtype=np.int32)
+        return self.kept_faces
 
 
 @dataclass
@@ -261,7 +270,7 @@ def clean_mesh(name: str, vertices, faces) -> tuple[np.ndarray, np.ndarray, np.n
         raise InputError(f"mesh {name!r}: {int((~np.isfinite(v)).any(axis=1).sum())} vertices are not finite")
     scale = max(float(np.ptp(v, axis=0).max()), 1e-9)
     keep = np.empty(len(f), bool)
-    chunk = 1 << 20  # faces per pass: the corners of a whole city-sized mesh would be gigabytes
+    chunk = 1 << 16  # faces per pass: 5 MB of temporaries (the corners of a whole city would be gigabytes)
     for lo in range(0, len(f), chunk):
         g = f[lo : lo + chunk]
         a, b, c = v[g[:, 0]], v[g[:, 1]], v[g[:, 2]]
@@ -313,18 +322,31 @@ class RayCaster:
         built = self.build_mesh(vertices, faces, name=name or f"mesh{len(self._meshes)}")
         return self.insert_mesh(built, movable=movable, pose=pose)
 
-    def build_mesh(self, vertices, faces, *, name: str | None = None) -> BuiltMesh:
+    def build_mesh(
+        self, vertices, faces, *, name: str | None = None, trim: bool = False, leaf_size: int | None = None
+    ) -> BuiltMesh:
         """The expensive half of :meth:`add_mesh`: check the mesh and build its BVH on this caster's device,
         without touching the scene (safe from another thread while this caster casts: a map's tile loader
-        builds tiles in the background); :meth:`insert_mesh` puts it in the scene."""
+        builds tiles in the background); :meth:`insert_mesh` puts it in the scene. ``trim``: give the
+        check's temporaries back to the system before the BVH is built, so that the BVH's arrays, which Warp
+        allocates larger than it writes, do not land on pages already touched
+        (:func:`rangemcl.mapping.heap.trim_freed_memory`; a map's tiles: 7 % less resident memory).
+        ``leaf_size``: triangles per BVH leaf (Warp's default, 4, when None; 8 takes about 13 % less memory
+        for the same hits, ``docs/design/issue17_notes.md``)."""
         name = name or "mesh"
         v, f, kept = clean_mesh(name, vertices, faces)
+        if trim:
+            trim_freed_memory()
         with wp.ScopedDevice(self.device):
-            mesh = wp.Mesh(points=wp.array(v, dtype=wp.vec3), indices=wp.array(f.ravel(), dtype=wp.int32))
+            mesh = wp.Mesh(
+                points=wp.array(v, dtype=wp.vec3),
+                indices=wp.array(f.ravel(), dtype=wp.int32),
+                bvh_leaf_size=leaf_size,
+            )
         bounds = np.concatenate([v.min(axis=0), v.max(axis=0)]).astype(np.float64)
-        return BuiltMesh(
-            mesh, MeshInfo(name, False, len(v), len(f), int(len(faces) - len(kept)), kept, bounds=bounds)
-        )
+        dropped = int(len(faces) - len(kept))
+        info = MeshInfo(name, False, len(v), len(f), dropped, kept if dropped else None, bounds=bounds)
+        return BuiltMesh(mesh, info)
 
     def insert_mesh(self, built: BuiltMesh, *, movable: bool = False, pose=None) -> int:
         """Put a mesh from :meth:`build_mesh` in the scene (the thread that casts); returns its handle."""

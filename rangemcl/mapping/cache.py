@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from rangemcl.errors import InputError
+from rangemcl.mapping.heap import trim_freed_memory
 from rangemcl.mapping.store import TileEntry, TileStore
 
 
@@ -67,14 +68,19 @@ def tile_arrays() -> TileKind:
     )
 
 
+TILE_LEAF_SIZE = 8  # triangles per BVH leaf of a tile held within a budget (RayCaster.build_mesh)
+
+
 def caster_tiles(caster, bytes_per_triangle: float = 62.0, bytes_per_vertex: float = 12.0) -> TileKind:
     """Tiles that live as meshes of ``caster`` (a :class:`~rangemcl.raycast.RayCaster`): the BVH is built
     by ``prepare`` (the loader thread), the mesh enters the scene at ``install`` and leaves it at
-    ``release``; a tile's size is the BVH's estimate, about 62 bytes a triangle with Warp's BVH and the
-    float32 vertices (measured on ``town_large``'s tiles: ``docs/design/issue17_notes.md``)."""
+    ``release``; a tile's size is what the process's resident memory grows by when it is loaded: about 62
+    bytes a triangle (Warp's BVH with 8 triangles a leaf, the float32 vertices and the indices) and 12 a
+    vertex, with the loader giving its temporaries back after each tile (:mod:`rangemcl.mapping.heap`;
+    ``town_large``'s 60 tiles: 454 MB resident for 457 MB counted, ``docs/design/issue17_notes.md``)."""
     return TileKind(
         size_of=lambda e: int(bytes_per_triangle * e.triangles + bytes_per_vertex * e.vertices),
-        prepare=lambda v, f, g: caster.build_mesh(v, f, name="tile"),
+        prepare=lambda v, f, g: caster.build_mesh(v, f, name="tile", trim=True, leaf_size=TILE_LEAF_SIZE),
         install=caster.insert_mesh,
         release=caster.remove_mesh,
     )
@@ -166,7 +172,10 @@ class TileCache:
 
     def _load(self, k: int, level: int):
         v, f, g = self.read(self.store, k, level == COARSE)
-        return self.kind.prepare(v, f, g)
+        item = self.kind.prepare(v, f, g)
+        del v, f, g
+        trim_freed_memory()  # the tile's read arrays and temporaries: not under the next tile's BVH
+        return item
 
     def _start(self, k: int, level: int, out: Request) -> None:
         if self._pool is None:
@@ -187,6 +196,8 @@ class TileCache:
         self.levels.pop(k)
         if self.kind.release is not None:
             self.kind.release(held)
+        del held
+        trim_freed_memory()
 
     def _evict(self, k: int, out: Request) -> None:
         if k in self.items:

@@ -33,7 +33,6 @@ point, a line per tile.
 
 from __future__ import annotations
 
-import contextlib
 import os
 import sys
 import time
@@ -43,6 +42,7 @@ import numpy as np
 
 from rangemcl.errors import InputError
 from rangemcl.mapping.cache import TileCache, caster_tiles
+from rangemcl.mapping.heap import return_freed_memory
 from rangemcl.mapping.meshmap import _read_ground_and_drive, _tile_keys, read_map_yaml
 from rangemcl.mapping.store import TileStore
 
@@ -81,26 +81,6 @@ def open_map(map_dir, memory_mb: float | None = None, *, device: str = "cpu", th
         memory_mb = quarter / 1e6
     caster = RayCaster(device, threads)
     return MapView(map_dir, memory_mb, caster), caster
-
-
-MMAP_THRESHOLD = 8 << 20  # bytes: allocations this large come from mmap (return_freed_memory)
-
-
-def return_freed_memory() -> None:
-    """Ask glibc to serve allocations from 8 MiB up by mmap, so that an evicted tile's large arrays (its
-    BVH, its vertices) go back to the system: with the default threshold, which grows with the largest
-    block freed, evicted tiles left the resident size at 3x the live bytes (``docs/design/
-    issue17_notes.md``). At 1 MiB the localizer's per-frame arrays were mmapped too and a frame took 1.2x
-    as long (measured on the dense map of ``tools/bench_large_map.py``); at 8 MiB the frame time is that
-    of the default. A no-op where glibc is absent."""
-    import ctypes
-    import ctypes.util
-
-    name = ctypes.util.find_library("c")
-    if not name or not sys.platform.startswith("linux"):
-        return
-    with contextlib.suppress(OSError, AttributeError):
-        ctypes.CDLL(name).mallopt(-3, MMAP_THRESHOLD)  # M_MMAP_THRESHOLD
 
 
 class MapView:

@@ -862,6 +862,12 @@ def test_some_degenerate_triangles_are_dropped():
     np.testing.assert_array_equal(info.face_map[hits.face_ids[sel]], ref_orig["face"][sel])
     assert not np.isin(info.face_map[hits.face_ids[hits.hit]], positions).any()
 
+    # a mesh that drops nothing keeps no face map (4 bytes a triangle): it is the identity, made on demand
+    h_clean = caster.add_mesh(v, f, name="clean")
+    whole = caster.meshes[h_clean]
+    assert whole.dropped_degenerate == 0 and whole.kept_faces is None
+    np.testing.assert_array_equal(whole.face_map, np.arange(len(f)))
+
 
 # ---------------------------------------------------------------------- 8. devices
 @pytest.mark.skipif(wp.is_cuda_available(), reason="checks the no-GPU error path")
