@@ -4,7 +4,8 @@
 a tile load, the updates that went without a wanted tile, and the accuracy, on the same drive and seed.
 
 Each run is a fresh ``rangemcl localize`` process under ``/usr/bin/time -v`` (its peak resident size is
-the process's own, Python, Warp and the sequence included), the runs alternating over ``--repeats``:
+the process's own, Python, Warp and the sequence included; in MiB, 1,048,576 bytes, where the budget's
+MB are 1,000,000 bytes), the runs alternating over ``--repeats``:
 
     python tools/bench_map_memory.py --seq out/demo/test_drive --map out/demo/map --budgets 10 20 40
     python tools/bench_map_memory.py --seq DRIVE --map MAP --mode global --frames 100 --budgets 500
@@ -63,7 +64,7 @@ def run_once(args, budget: float | None, out: Path) -> dict:
     updates = [r for r in rows if int(r["map_tiles"]) >= 0]
     mem = summary.get("map_memory", {})
     return {
-        "peak_mb": peak_kb / 1024,
+        "peak_mib": peak_kb / 1024,  # MiB: /usr/bin/time's kbytes are KiB
         "ms_after": 1e3 * statistics.median(after) if after else float("nan"),
         "longest_wait_ms": mem.get("longest_wait_ms", float("nan")),
         "startup_load_ms": mem.get("startup_load_ms", float("nan")),
@@ -116,7 +117,7 @@ def main() -> None:
 
         r0 = rs[0]
         row = {
-            "peak_mb": med("peak_mb"),
+            "peak_mib": med("peak_mib"),
             "ms_after": med("ms_after"),
             "longest_wait_ms": max(r["longest_wait_ms"] for r in rs),
             "startup_load_ms": med("startup_load_ms"),
@@ -132,10 +133,10 @@ def main() -> None:
         table["whole" if v is None else str(v)] = row
         name = "whole map" if v is None else f"`--map-memory {v:g}`"
         if v is None:
-            cells = [f"{row['peak_mb']:.0f} MB", f"{row['ms_after']:.1f}", "—", "—", "—", "—", "—", "—"]
+            cells = [f"{row['peak_mib']:.0f} MiB", f"{row['ms_after']:.1f}", "—", "—", "—", "—", "—", "—"]
         else:
             cells = [
-                f"{row['peak_mb']:.0f} MB ({row['peak_mb'] / table['whole']['peak_mb']:.2f}×)",
+                f"{row['peak_mib']:.0f} MiB ({row['peak_mib'] / table['whole']['peak_mib']:.2f}×)",
                 f"{row['ms_after']:.1f} ({row['ms_after'] / table['whole']['ms_after']:.2f}×)",
                 f"{row['startup_load_ms']:.0f} ms",
                 f"{row['longest_wait_ms']:.0f} ms",

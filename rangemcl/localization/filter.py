@@ -185,6 +185,7 @@ class MonteCarloLocalizer:
         self.model = residual_model
         self.select_rays = select_rays
         self.init_cells = area
+        self._count_in_budget("drivable area", area.corners.nbytes + getattr(area.headings, "nbytes", 0))
         self.noise = noise
         self.lost = lost
         self.rng = rng
@@ -272,7 +273,15 @@ class MonteCarloLocalizer:
             self.prior, self.prior_source = load_or_build(
                 self.map, self.caster, area.corners, area.cell_m, self.prior_params
             )
+            self._count_in_budget("place prior", self.prior.nbytes)
         return self.prior
+
+    def _count_in_budget(self, what: str, nbytes: int) -> None:
+        """A map held within a memory budget (``rangemcl.mapping.view.MapView``) counts what the filter
+        derives from it against that budget; a whole map has no budget."""
+        reserve = getattr(self.map, "reserve", None)
+        if reserve is not None:
+            reserve(what, nbytes)
 
     def spread(self, n: int | None = None) -> None:
         """Global localization: ``n`` particles uniform over the drivable area; yaw along the mapping

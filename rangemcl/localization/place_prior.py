@@ -142,7 +142,8 @@ class PlacePrior:
 
     @property
     def nbytes(self) -> int:
-        return int(self.xy.astype(np.float32).nbytes + self.profiles.nbytes)
+        """Bytes held in memory (the cell centres and the profiles)."""
+        return int(self.xy.nbytes + self.profiles.nbytes)
 
     # --- building -----------------------------------------------------------------------------------------
 

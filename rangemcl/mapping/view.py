@@ -27,8 +27,9 @@ What the view does not bound yet (issue 17, next steps): the second opinion of
 the lost detector sees only held tiles; the likelihood-field model and a place prior that is not stored
 with the map need the whole mesh (an error says so).
 
-The ground grid, the mapping drive and the index stay whole: 4 bytes per m² of map, 16 bytes a drive
-point, a line per tile.
+The ground grid, the mapping drive and the index stay whole (13 bytes per m² of map, 16 bytes a drive
+point, a line per tile), and so do the place prior's profiles and the drivable area's cells: all of them
+count against the budget (:meth:`MapView.reserve`), and the tiles get what is left.
 """
 
 from __future__ import annotations
@@ -132,6 +133,11 @@ class MapView:
         self.cache = TileCache(
             self.store, self.budget_bytes, kind=caster_tiles(caster), background=background, coarse=coarse
         )
+        self.derived: dict[str, int] = {}  # what else is held of the map, counted in the budget (reserve)
+        ground = sum(a.nbytes for a in vars(self.ground).values() if isinstance(a, np.ndarray))
+        self.reserve("ground grid", ground)
+        if self.drive_xy is not None:
+            self.reserve("mapping drive", self.drive_xy.nbytes)
         self.prefetch_m = float(prefetch_m)
         self.updates = 0
         self.longest_wait_ms = 0.0  # the longest an update waited for tiles
@@ -163,6 +169,21 @@ class MapView:
         return np.where(found, self._key_order[pos], -1).astype(np.int64)
 
     # --- the budget -----------------------------------------------------------------------------------
+
+    def reserve(self, what: str, nbytes: int) -> None:
+        """Count ``nbytes`` of something the localizer derives from the map and holds (the ground grid, the
+        mapping drive, the place prior's profiles, the drivable area's cells) against the budget, under the
+        name ``what`` (a second call with the same name replaces the first): the tiles get what is left.
+        Call it before the tiles are loaded; an error line when nothing is left for them."""
+        self.derived[what] = int(nbytes)
+        left = self.budget_bytes - sum(self.derived.values())
+        if left <= 0:
+            held = ", ".join(f"{k} {v / 1e6:.1f} MB" for k, v in self.derived.items())
+            raise InputError(
+                f"{self.source_dir}: --map-memory {self.budget_bytes / 1e6:g} MB leaves nothing for the map's "
+                f"tiles ({held}); give a larger budget"
+            )
+        self.cache.budget_bytes = left
 
     def update(self, xy: np.ndarray, radius_m: float, *, wait: bool = True, cell_m: float = 10.0) -> dict:
         """Hold the tiles within ``radius_m`` of the positions ``xy`` ``(N, 2)`` (reduced to one focus per
@@ -217,6 +238,8 @@ class MapView:
     def summary(self) -> dict:
         return {
             "budget_mb": self.budget_bytes / 1e6,
+            "tiles_budget_mb": self.cache.budget_bytes / 1e6,
+            "derived_mb": {k: v / 1e6 for k, v in self.derived.items()},
             "peak_mb": self.cache.peak_bytes / 1e6,
             "tiles": len(self.store.entries),
             "tile_loads": self.loads,

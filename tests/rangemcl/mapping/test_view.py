@@ -146,8 +146,13 @@ def test_a_map_of_format_1_is_refused_with_the_fix(small_town_map, tmp_path, sav
         MapView(tmp_path / "v1", 100.0, RayCaster("cpu", 1))
     with pytest.raises(InputError, match="--map-memory"):
         MapView(map_dir, -1.0, RayCaster("cpu", 1))
+    # the ground grid and the mapping drive count against the budget: one line when nothing is left
+    with pytest.raises(InputError, match=r"leaves nothing for the map's tiles \(ground grid"):
+        MapView(map_dir, 0.01, RayCaster("cpu", 1))
+    derived = MapView(map_dir, 100.0, RayCaster("cpu", 1)).derived
+    assert derived["ground grid"] > 0
     # a budget below the nearest tile: one line saying what it takes, not an empty scene
-    view = MapView(map_dir, 0.01, RayCaster("cpu", 1), coarse=False)
+    view = MapView(map_dir, sum(derived.values()) / 1e6 + 0.01, RayCaster("cpu", 1), coarse=False)
     with pytest.raises(InputError, match=r"holds none of the tiles in range.*rangemcl map-coarse"):
         view.update(view.drive_xy[:1], 40.0)
     view.close()
@@ -188,3 +193,27 @@ def test_the_agent_takes_the_budget_from_its_settings(tiled):
     agent = MCLAgent(map_dir, RangeImageGeometry.for_spec(load_spec("os1-64")), settings=s, threads=1)
     assert isinstance(agent.map, MapView) and agent.map.budget_bytes == 5_000_000
     agent.map.close()
+
+
+def test_what_the_filter_derives_from_the_map_counts_against_the_budget(tiled, tmp_path):
+    """The ground grid, the mapping drive, the drivable area's cells and the place prior's profiles are
+    held whole: each is counted against ``--map-memory`` under its name, and the tiles get what is left."""
+    import shutil
+
+    from rangemcl.mapping.view import open_map
+    from rangemcl.mcl import build_localizer, map_place_prior
+
+    _, source = tiled
+    map_dir = shutil.copytree(source, tmp_path / "map")
+    s = settings()
+    map_place_prior(map_dir, s, threads=1)  # stored with the map, as build-map does
+    view, caster = open_map(map_dir, 5.0, threads=1)
+    loc = build_localizer(view, s, rng=np.random.default_rng(0), caster=caster, threads=1)
+    loc.spread(500)
+    d = view.derived
+    assert {"ground grid", "mapping drive", "drivable area", "place prior"} <= set(d)
+    assert d["place prior"] == loc.prior.nbytes > 0 and d["drivable area"] > 0
+    assert view.cache.budget_bytes == 5_000_000 - sum(d.values())
+    assert 0 < view.cache.peak_bytes <= view.cache.budget_bytes
+    assert view.summary()["derived_mb"]["place prior"] == pytest.approx(loc.prior.nbytes / 1e6)
+    view.close()
