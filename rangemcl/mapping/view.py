@@ -180,8 +180,8 @@ class MapView:
         if left <= 0:
             held = ", ".join(f"{k} {v / 1e6:.1f} MB" for k, v in self.derived.items())
             raise InputError(
-                f"{self.source_dir}: --map-memory {self.budget_bytes / 1e6:g} MB leaves nothing for the map's "
-                f"tiles ({held}); give a larger budget"
+                f"{self.source_dir}: --map-memory {self.budget_bytes / 1e6:g} MB leaves nothing for the "
+                f"map's tiles ({held}); give a larger budget"
             )
         self.cache.budget_bytes = left
 
