@@ -174,7 +174,7 @@ def main() -> None:
         wait = f"{r['longest_wait_ms']:.0f} ms" if held else "—"
         waits = str(r["waits"]) if held else "—"
         rmse = "—" if r["rmse_m"] is None else f"{r['rmse_m']:.4f} m"
-        cells = [f"{r['peak_mb']:.0f} MB", f"{r['ms_after']:.1f}", start, wait, waits, rmse]
+        cells = [f"{r['peak_mib']:.0f} MiB", f"{r['ms_after']:.1f}", start, wait, waits, rmse]
         print(f"| {name} | " + " | ".join(cells) + " |")
     print(f"frame time ratio dense/source: {big['ms_after'] / src['ms_after']:.2f}")
     if args.json:
