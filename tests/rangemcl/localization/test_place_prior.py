@@ -161,8 +161,13 @@ def test_a_prior_rendered_with_tiles_held_coarse_is_not_taken_for_the_whole_maps
     m.save(tmp_path / "map", coarse_ratio=0.05)
     corners = np.array([[0.0, -27.0], [10.0, -27.0], [20.0, 23.0]])
 
-    def in_view(budget_mb: float):
-        view = MapView(tmp_path / "map", budget_mb, RayCaster(threads=2))
+    # the ground grid and the drive count against a budget too: the budgets below are the tiles' share
+    probe = MapView(tmp_path / "map", 100.0, RayCaster(threads=2))
+    derived_mb = sum(probe.derived.values()) / 1e6
+    probe.close()
+
+    def in_view(tiles_mb: float):
+        view = MapView(tmp_path / "map", tiles_mb + derived_mb, RayCaster(threads=2))
         try:
             return load_or_build(view, view.caster, corners, 1.0), prior_key(
                 view, grid_cells(corners, 1.0, 2.0), PriorParams()
