@@ -23,9 +23,9 @@ Where the tiles in range do not all fit at full resolution and the map has a coa
 map-coarse``: each tile decimated to 5 %), the nearest tiles are held at full resolution and the farther
 ones coarse (``map_coarse`` in the frame log); without one, the farther tiles are left out.
 
-What the view does not bound yet (issue 17, next steps): the second opinion of
-the lost detector sees only held tiles; the likelihood-field model and a place prior that is not stored
-with the map need the whole mesh (an error says so).
+What the view does not do yet (issue 17, next steps): the second opinion of the lost detector scores
+its candidate places in the held tiles only; the likelihood-field model needs the whole mesh (an error
+says so).
 
 The ground grid, the mapping drive and the index stay whole (13 bytes per m² of map, 16 bytes a drive
 point, a line per tile), and so do the place prior's profiles and the drivable area's cells: all of them
