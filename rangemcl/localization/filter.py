@@ -699,7 +699,9 @@ class MonteCarloLocalizer:
         """:func:`rangemcl.localization.lost.second_opinion` on the prior's best places for this scan,
         with the rays measured at least ``opinion_min_range_m`` away (near objects, vehicles alongside
         above all, fit any wall); the filter's own cloud is scored on the same rays. ``None`` when the
-        scan has too little in the prior's height band, or too few far rays, to compare."""
+        scan has too little in the prior's height band, or too few far rays, to compare. Over a map
+        within a budget (:meth:`rangemcl.mapping.view.MapView.consult`) the places whose tiles are not
+        held yet are asked for and left out of this opinion."""
         lost = self.lost
         far = rays.ranges >= lost.opinion_min_range_m
         if far.sum() < max(20, 0.1 * len(far)):
@@ -714,6 +716,15 @@ class MonteCarloLocalizer:
         xy, yaw, _cost, known = prior.candidates(levelled, self.sensor_height_m, lost.opinion_top)
         if known < max(8, prior.params.bins // 20):
             return None
+        consult = getattr(self.map, "consult", None)  # a map within a budget: only the places held
+        if consult is not None:
+            far_away = np.hypot(xy[:, 0] - self.last_estimate[0], xy[:, 1] - self.last_estimate[1])
+            keep = far_away > self.separation_m - 0.5 * prior.params.cell_m
+            xy, yaw = xy[keep], yaw[keep]
+            held = consult(xy)
+            xy, yaw = xy[held], yaw[held]
+            if len(xy) == 0:  # none scoreable yet (their tiles are loading): no better place found
+                return Opinion(False, self.last_estimate.copy(), math.inf, math.nan, 0)
         cand = candidate_particles(
             xy, yaw, lost.opinion_per_place, prior.params.cell_m, self.prior_yaw_sigma, self.rng
         )

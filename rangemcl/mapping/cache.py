@@ -9,7 +9,9 @@ against the budget. :meth:`TileCache.request` takes focus points (the estimate, 
 cluster's centre) and a radius (the sensor's maximum range): the tiles whose box lies within the radius
 of a focus are wanted, nearest first, and those within ``radius + prefetch`` are loaded ahead; tiles no
 longer wanted are evicted farthest first to make room, and wanted tiles that do not fit are left out and
-reported (the caller goes without them and says so).
+reported (the caller goes without them and says so). A request may also name ``extra_xy``, places to
+look at without moving there (the lost detector's rival places): their tiles come last, in what the
+wanted tiles and the prefetch ring leave of the budget, and are never waited for.
 
 With ``background=True`` tiles are read and prepared (file, checksum, inflation, BVH build) in a worker
 thread: a request starts the loads it needs and returns at once with what is held, the tiles still
@@ -35,14 +37,15 @@ from rangemcl.mapping.heap import trim_freed_memory
 from rangemcl.mapping.store import TileEntry, TileStore
 
 
-def tile_distances(store: TileStore, focus_xy) -> np.ndarray:
+def tile_distances(store: TileStore, focus_xy, *, each: bool = False) -> np.ndarray:
     """``(T,)`` distance in x, y from each tile's box (its mesh's bounds) to the nearest focus point (0 for a
-    focus inside the box)."""
+    focus inside the box); ``each``: ``(T, F)``, to every focus point."""
     b = np.array([e.bounds for e in store.entries], np.float64)  # (T, 6)
     f = np.asarray(focus_xy, np.float64).reshape(-1, 2)
     dx = np.maximum(0.0, np.maximum(b[:, None, 0] - f[None, :, 0], f[None, :, 0] - b[:, None, 3]))
     dy = np.maximum(0.0, np.maximum(b[:, None, 1] - f[None, :, 1], f[None, :, 1] - b[:, None, 4]))
-    return np.hypot(dx, dy).min(axis=1)
+    d = np.hypot(dx, dy)
+    return d if each else d.min(axis=1)
 
 
 @dataclass(frozen=True)
@@ -87,6 +90,7 @@ def caster_tiles(caster, bytes_per_triangle: float = 62.0, bytes_per_vertex: flo
 
 
 FULL, COARSE = 0, 1  # a tile's levels
+EXTRA_LOADS = 2  # loads of extra places' tiles (TileCache.request's extra_xy) in flight at once
 
 
 @dataclass
@@ -102,6 +106,7 @@ class Request:
     evicted: list[int] = field(default_factory=list)  # dropped at this request, in order
     broken: list[int] = field(default_factory=list)  # found unreadable at this request (see TileCache.broken)
     wait_ms: float = 0.0  # how long this request waited for tiles to load
+    extra: list[int] = field(default_factory=list)  # tiles within the radius of the extra places (not wanted)
 
 
 class TileCache:
@@ -226,9 +231,10 @@ class TileCache:
             self.levels[k] = level
             out.loaded.append(k)
 
-    def _plan(self, near: list[int], ahead: list[int]) -> dict[int, int]:
+    def _plan(self, near: list[int], ahead: list[int], extra: list[int] = ()) -> dict[int, int]:
         """The level each tile should be held at: ``near`` (within the radius, nearest first) within the
-        budget, then ``ahead`` (the prefetch ring) in what is left."""
+        budget, then ``ahead`` (the prefetch ring) and ``extra`` (the extra places' tiles, in their order)
+        in what is left, each at full resolution where it fits, else coarse."""
         target: dict[int, int] = {}
         left = self.budget_bytes
         if self.use_coarse:
@@ -245,7 +251,7 @@ class TileCache:
                 if self.size(k) <= left:
                     target[k] = FULL
                     left -= self.size(k)
-        for k in ahead:
+        for k in (*ahead, *extra):
             for level in (FULL, COARSE) if self.use_coarse else (FULL,):
                 if self.size(k, level) <= left:
                     target[k] = level
@@ -253,31 +259,67 @@ class TileCache:
                     break
         return target
 
-    def request(self, focus_xy, radius_m: float, *, prefetch_m: float = 0.0, wait: bool = True) -> Request:
+    def request(
+        self,
+        focus_xy,
+        radius_m: float,
+        *,
+        prefetch_m: float = 0.0,
+        wait: bool = True,
+        extra_xy=None,
+    ) -> Request:
         """Hold the tiles within ``radius_m`` of the focus points and load those within ``radius_m +
         prefetch_m``, within the budget (the class docstring says at which level); tiles no longer wanted
         stay until their room is needed, then go farthest first, before the wanted tiles that the plan
         leaves out or holds at another level. In the background, ``wait`` blocks until the wanted tiles'
         loads have finished; a request also waits when it evicted a wanted tile to make room for a nearer
-        one (a budget too small for the tiles in range) or holds none of the wanted tiles."""
+        one (a budget too small for the tiles in range) or holds none of the wanted tiles.
+
+        ``extra_xy`` ``(E, 2)``, most important first: places whose tiles within ``radius_m`` are loaded
+        in what is left of the budget after the wanted tiles and the prefetch ring, never waited for,
+        and kept only while a request names them (``Request.extra``)."""
         out = Request(wanted=[], held=[], left_out=[])
         self._harvest(out)
         dist = tile_distances(self.store, focus_xy)
         order = [int(k) for k in np.argsort(dist, kind="stable")]
         out.wanted = [k for k in order if dist[k] <= radius_m]
         usable = [k for k in order if dist[k] <= radius_m + prefetch_m and k not in self.broken]
+        extra: list[int] = []
+        if extra_xy is not None and len(np.asarray(extra_xy).reshape(-1, 2)):
+            taken = set(usable)
+            per_place = tile_distances(self.store, extra_xy, each=True)  # (T, E)
+            for d in per_place.T:
+                for k in np.argsort(d, kind="stable"):
+                    k = int(k)
+                    if d[k] > radius_m:
+                        break
+                    if k not in taken and k not in self.broken:
+                        taken.add(k)
+                        extra.append(k)
+        out.extra = extra
         target = self._plan(
-            [k for k in usable if dist[k] <= radius_m], [k for k in usable if dist[k] > radius_m]
+            [k for k in usable if dist[k] <= radius_m], [k for k in usable if dist[k] > radius_m], extra
         )
-        want = set(usable)
+        want = set(usable) | set(extra)
         for k in [k for k, (lvl, _fu) in self._loading.items() if target.get(k) != lvl]:
             self._drop_load(k)
-        # loads nearest first; room is made by evicting what the plan does not hold at its level, tiles no
-        # longer wanted first, farthest first (a coarse tile waiting to be raised stays while it can)
-        for k in sorted(target, key=lambda j: dist[j]):
+        # loads nearest first, the extra places' tiles last and at most EXTRA_LOADS of them at a time (a
+        # tile the car drives into never queues behind many of them); room is made by evicting what the
+        # plan does not hold at its level, tiles no longer wanted first, farthest first (a coarse tile
+        # waiting to be raised stays while it can)
+        extras = set(extra)
+        in_flight = sum(k in extras for k in self._loading)
+        for k in [
+            *sorted((j for j in target if j not in extras), key=lambda j: dist[j]),
+            *(j for j in extra if j in target),
+        ]:
             level = target[k]
             if self.levels.get(k) == level or (k in self._loading and self._loading[k][0] == level):
                 continue
+            if k in extras:
+                if in_flight >= EXTRA_LOADS:
+                    continue
+                in_flight += 1
             spare = sorted(
                 (j for j in self.items if j != k and target.get(j) != self.levels[j]),
                 key=lambda j: (j in want, -dist[j]),

@@ -23,9 +23,14 @@ Where the tiles in range do not all fit at full resolution and the map has a coa
 map-coarse``: each tile decimated to 5 %), the nearest tiles are held at full resolution and the farther
 ones coarse (``map_coarse`` in the frame log); without one, the farther tiles are left out.
 
-What the view does not do yet (issue 17, next steps): the second opinion of the lost detector scores
-its candidate places in the held tiles only; the likelihood-field model needs the whole mesh (an error
-says so).
+The lost detector's second opinion scores rival places anywhere in the map (the place prior's best
+places for the scan): :meth:`MapView.consult` names them, their tiles are loaded in the background in
+what the budget leaves after the particles' tiles and the prefetch ring (never waited for, never in the
+way of a tile the car drives into), and a place is scored only once all its tiles in range are held, so
+that it is scored as against the whole map (the places not yet scoreable are counted in the summary).
+
+What the view does not do yet (issue 17, next steps): the likelihood-field model needs the whole mesh
+(an error says so).
 
 The ground grid, the mapping drive and the index stay whole (13 bytes per m² of map, 16 bytes a drive
 point, a line per tile), and so do the place prior's profiles and the drivable area's cells: all of them
@@ -42,7 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from rangemcl.errors import InputError
-from rangemcl.mapping.cache import TileCache, caster_tiles
+from rangemcl.mapping.cache import TileCache, caster_tiles, tile_distances
 from rangemcl.mapping.heap import return_freed_memory
 from rangemcl.mapping.meshmap import _read_ground_and_drive, _tile_keys, read_map_yaml
 from rangemcl.mapping.store import TileStore
@@ -145,6 +150,11 @@ class MapView:
         self.loads = 0  # tiles read over the run
         self.coarse_updates = 0  # updates at which a wanted tile was held at the coarse level
         self.left_out_updates = 0  # updates at which a wanted tile did not fit
+        self._last: tuple[np.ndarray, float] | None = None  # the last update's focus points and radius
+        self._extra_xy: np.ndarray | None = None  # places consulted (consult), kept for a few updates
+        self._extra_left = 0
+        self.consulted_places = 0  # places named to consult over the run ...
+        self.unscored_places = 0  # ... of them not yet held when named
 
     # --- what the localizer reads of a map ------------------------------------------------------------
 
@@ -193,11 +203,16 @@ class MapView:
         xy = np.asarray(xy, np.float64).reshape(-1, 2)
         xy = xy[np.isfinite(xy).all(axis=1)]
         focus = (np.unique(np.floor(xy / cell_m), axis=0) + 0.5) * cell_m
+        radius = radius_m + 0.75 * cell_m  # a focus stands for its cell
+        self._last = (focus, radius)
+        extra = self._extra_xy if self._extra_left > 0 else None
+        self._extra_left = max(0, self._extra_left - 1)
         r = self.cache.request(
             focus,
-            radius_m + 0.75 * cell_m,  # a focus stands for its cell
+            radius,
             prefetch_m=self.prefetch_m,
             wait=wait,  # the cache also waits while it holds none of the wanted tiles (the first update)
+            extra_xy=extra,
         )
         if r.wanted and not self.cache.items and not r.loading:
             need = min(self.cache.sizes[k][1] or self.cache.sizes[k][0] for k in r.wanted)
@@ -221,6 +236,31 @@ class MapView:
             map_mb=self.cache.nbytes / 1e6,
             map_load_ms=r.wait_ms,
         )
+
+    def consult(self, xy: np.ndarray, *, keep_updates: int = 3) -> np.ndarray:
+        """Places to look at without moving there, ``(E, 2)``, best first (the lost detector's rival
+        places): their tiles within the last update's radius are loaded in the background in what the
+        budget leaves after the particles' tiles and the prefetch ring, and stay wanted for the next
+        ``keep_updates`` updates. Returns ``(E,)``: whether all of a place's tiles in range are held now
+        (at either level), i.e. whether rays cast from it see what they would see in the whole map. Never
+        waits."""
+        xy = np.asarray(xy, np.float64).reshape(-1, 2)
+        if self._last is None or len(xy) == 0:
+            return np.zeros(len(xy), bool)
+        self._extra_xy, self._extra_left = xy.copy(), int(keep_updates)
+        focus, radius = self._last
+        r = self.cache.request(focus, radius, prefetch_m=self.prefetch_m, wait=False, extra_xy=xy)
+        self.loads += len(r.loaded)
+        for k in r.broken:
+            print(f"warning: {self.cache.broken[k]}; localizing without that tile", file=sys.stderr)
+        near = tile_distances(self.store, xy, each=True) <= radius  # (T, E)
+        held = np.zeros(len(self.store.entries), bool)
+        held[list(self.cache.items)] = True
+        held[list(self.cache.broken)] = True  # never to be held: scored without it, as the particles are
+        ok = ~(near & ~held[:, None]).any(axis=0)
+        self.consulted_places += len(xy)
+        self.unscored_places += int((~ok).sum())
+        return ok
 
     def preload(self, xy: np.ndarray, radius_m: float) -> None:
         """Before the first frame: load and hold the tiles for the positions ``xy`` as :meth:`update`
@@ -249,6 +289,8 @@ class MapView:
             "updates_with_tiles_left_out": self.left_out_updates,
             "updates_with_coarse_tiles": self.coarse_updates,
             "coarse_level": self.cache.use_coarse,
+            "opinion_places": self.consulted_places,
+            "opinion_places_not_held": self.unscored_places,
         }
 
     def background_points(self, max_points: int = 150_000) -> np.ndarray:

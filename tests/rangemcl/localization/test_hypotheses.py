@@ -266,3 +266,60 @@ def test_the_second_opinion_vetoes_alarms_where_no_other_place_fits_better(secon
     assert not recovered, f"false alarm at frame {recovered} after {vetoed} vetoes"
     assert vetoed >= 1 and loc.vetoed_alarms >= 1  # the watch did raise suspicions
     assert max(err) < 0.5
+
+
+@pytest.mark.parametrize("consult", [True, False])
+def test_over_a_map_within_a_budget_the_second_opinion_finds_a_place_whose_tiles_were_not_held(
+    tmp_path, monkeypatch, consult
+):
+    """Two streets 100 m apart (B with a third of A's buildings), the map in 25 m tiles seen through a
+    budget of about half the map (``rangemcl.mapping.view.MapView``). The filter is put on street B
+    while the car drives street A, and its probation asks the second opinion: street A's tiles are not
+    held, so the view loads them in the background (``consult``), and once they are in, the opinion
+    scores A's places as the whole map would and the filter declares itself lost, a few updates after
+    the filter with the map held whole. Without ``consult`` (the view before session 11) A's places are
+    scored against tiles that are not there, and the wrong street stands."""
+    from rangemcl.mapping.view import MapView
+
+    ground = meshgen.grid_patch((-40.0, -40.0, 0.0), (260.0, 0, 0), (0, 200.0, 0), 65, 50)
+    v, f = meshgen.merge([ground, *street(0.0, 0.0, False, 3), *street(0.0, 100.0, False, 11)[::3]])
+    world = RayCaster(threads=2)
+    world.add_mesh(v, f, name="world")
+    m = MeshMap.from_mesh(v, f, tile_size_m=25.0, meta={"sensor_height_m": HEIGHT})
+    xs = np.arange(-5.0, 150.0, 1.0)
+    m.drive_xy = np.vstack([np.column_stack([xs, np.zeros_like(xs)]), np.column_stack([xs, xs * 0 + 100])])
+    m.save(tmp_path / "map")
+    geo = RangeImageGeometry.for_spec(load_spec("vlp-16").with_columns(360))
+    path = np.column_stack([np.arange(20.0, 60.0, 0.8), np.zeros(50), np.zeros(50)])  # along street A
+    wrong = path[0] + [0.0, 100.0, 0.0]  # the same spot of street B
+
+    def run(mesh_map, caster):
+        loc = build_localizer(mesh_map, twin_settings(), seed=7, caster=caster)
+        loc.start_at(wrong)
+        loc.lost.start_probation()
+        for k in range(len(path)):
+            delta = se2_between(path[k - 1], path[k]) if k else np.zeros(3)
+            info = loc.step(delta, scan_at(world, geo, path[k]))
+            if info.recovered:
+                return k
+        return None
+
+    whole = run(MeshMap.load(tmp_path / "map"), None)  # (renders the place prior into the map folder)
+    assert whole is not None and whole <= 10
+    if not consult:
+        monkeypatch.delattr(MapView, "consult")
+    sizes = [
+        62 * e.triangles + 12 * e.vertices for e in MapView(tmp_path / "map", 1e3, RayCaster()).store.entries
+    ]
+    caster = RayCaster(threads=2)
+    view = MapView(tmp_path / "map", 0.5 * sum(sizes) / 1e6 + 1.0, caster)
+    try:
+        k = run(view, caster)
+        if consult:
+            assert view.unscored_places > 0  # the true street's tiles were asked for, not held at first
+            assert k is not None and k <= whole + 4
+            assert view.cache.peak_bytes <= view.cache.budget_bytes
+        else:
+            assert k is None
+    finally:
+        view.close()

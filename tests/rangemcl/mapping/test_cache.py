@@ -145,6 +145,53 @@ def test_the_background_loader_does_not_block_a_request(store):
         cache.close()
 
 
+def test_extra_places_take_what_the_car_leaves_and_are_never_waited_for(store):
+    """The lost detector's rival places (``extra_xy``): their tiles load in the background after the
+    wanted tiles and the prefetch ring, at most two at a time, best place first, within what the budget
+    leaves; a request never waits for them and never evicts a wanted tile for them; once no request
+    names them they are the first to go."""
+    import time
+
+    from rangemcl.mapping.cache import EXTRA_LOADS
+
+    def slow(s, k, coarse):
+        time.sleep(0.2)
+        return s.read(k, coarse=coarse)
+
+    one = store.entries[0].vertices * 25 + store.entries[0].triangles * 12
+    ij = [e.ij for e in store.entries]
+    cache = TileCache(store, budget_bytes=6 * one, read=slow, background=True)
+    try:
+        car = [[10.0, 10.0]]  # tile (0, 0); the prefetch ring adds (1, 0), (0, 1) and (1, 1)
+        cache.request(car, 5.0, prefetch_m=12.0, wait=True)
+        places = [[90.0, 90.0], [90.0, 10.0], [10.0, 90.0], [50.0, 50.0]]  # (4,4), (4,0), (0,4), (2,2)
+        t0 = time.perf_counter()
+        r = cache.request(car, 5.0, prefetch_m=12.0, wait=False, extra_xy=places)
+        assert time.perf_counter() - t0 < 0.1 and r.wait_ms == 0.0
+        assert r.extra == [ij.index(c) for c in [(4, 4), (4, 0), (0, 4), (2, 2)]]
+        assert r.held == [ij.index((0, 0))] and not r.evicted
+        extra_loading = [k for k in r.loading if k in r.extra]
+        assert len(extra_loading) <= EXTRA_LOADS
+        deadline = time.perf_counter() + 5.0
+        while time.perf_counter() < deadline:
+            r = cache.request(car, 5.0, prefetch_m=12.0, wait=False, extra_xy=places)
+            assert ij.index((0, 0)) in cache.items  # the car's tile stays
+            assert sum(k in r.extra for k in r.loading) <= EXTRA_LOADS
+            if not r.loading:
+                break
+            time.sleep(0.05)
+        # the budget of 6 tiles: the car's 4, then the two best places
+        held = {ij[k] for k in cache.items}
+        assert held == {(0, 0), (1, 0), (0, 1), (1, 1), (4, 4), (4, 0)}
+        assert cache.peak_bytes <= cache.budget_bytes
+        # the car drives on: the places no longer named leave first, the car's new tiles come in
+        r = cache.request([[50.0, 10.0]], 5.0, prefetch_m=0.0, wait=True)
+        assert r.evicted == [ij.index((4, 4))]  # the farthest of the tiles no longer named
+        assert r.held == r.wanted == [ij.index((2, 0))]
+    finally:
+        cache.close()
+
+
 def test_a_broken_tile_is_reported_once_and_left_out(store, tmp_path):
     """A truncated tile file: the request names it (``broken``, the error line names the file), goes on
     with the other tiles, and never reads it again."""
