@@ -37,10 +37,32 @@ wp.set_module_options({"enable_backward": False})
 
 
 @wp.func
+def segment_meets_box(o: wp.vec3, d: wp.vec3, t_max: float, lo: wp.vec3, hi: wp.vec3):
+    """Whether the ray ``o + t d``, 0 <= t <= t_max, meets the box [lo, hi] (slab test)."""
+    t0 = float(0.0)
+    t1 = t_max
+    ok = int(1)
+    for a in range(3):
+        if d[a] == 0.0:
+            if o[a] < lo[a] or o[a] > hi[a]:
+                ok = 0
+        else:
+            inv = 1.0 / d[a]
+            ta = (lo[a] - o[a]) * inv
+            tb = (hi[a] - o[a]) * inv
+            t0 = wp.max(t0, wp.min(ta, tb))
+            t1 = wp.min(t1, wp.max(ta, tb))
+    if t0 > t1:
+        ok = 0
+    return ok
+
+
+@wp.func
 def closest_hit(
     meshes: wp.array[wp.uint64],
     inv_poses: wp.array[wp.transform],
     moved: wp.array[wp.int32],
+    boxes: wp.array[wp.vec3],
     origin: wp.vec3,
     direction: wp.vec3,
     max_t: float,
@@ -48,7 +70,9 @@ def closest_hit(
     """Closest hit over all meshes: (t, mesh index, face, normal in the hit mesh's frame).
 
     On a miss t = max_t and the mesh index is -1. Meshes with ``moved[m] == 0`` sit at the identity
-    pose and skip the ray transform (the common case: the static world).
+    pose and skip the ray transform (the common case: the static world). ``boxes[2m], boxes[2m + 1]``:
+    mesh ``m``'s bounds in its own frame, padded; a mesh whose box the ray does not meet before the
+    closest hit so far is not queried (a map held as tiles: most tiles of a launch lie off each ray).
     """
     best_t = max_t
     best_mesh = int(-1)  # int(...) makes Warp declare a mutable loop variable
@@ -60,13 +84,26 @@ def closest_hit(
         if moved[m] != 0:
             o = wp.transform_point(inv_poses[m], origin)
             d = wp.transform_vector(inv_poses[m], direction)
-        q = wp.mesh_query_ray(meshes[m], o, d, best_t)
-        if q.result:
-            best_t = q.t
-            best_mesh = m
-            best_face = q.face
-            best_normal = q.normal
+        if segment_meets_box(o, d, best_t, boxes[2 * m], boxes[2 * m + 1]) != 0:
+            q = wp.mesh_query_ray(meshes[m], o, d, best_t)
+            if q.result:
+                best_t = q.t
+                best_mesh = m
+                best_face = q.face
+                best_normal = q.normal
     return best_t, best_mesh, best_face, best_normal
+
+
+def padded_boxes(bounds: np.ndarray) -> np.ndarray:
+    """``(M, 6)`` mesh bounds (NaN rows: unknown) as the ``(2M, 3)`` float32 boxes :func:`closest_hit`
+    tests, padded for float32 rounding (a hit exactly on a flat tile's face still counts); unknown
+    bounds give a box that every ray meets."""
+    b = np.asarray(bounds, np.float64).reshape(-1, 6)
+    known = np.isfinite(b).all(axis=1)
+    pad = 1e-3 + 1e-5 * np.abs(np.where(np.isfinite(b), b, 0.0)).max(axis=1, initial=0.0)
+    lo = np.where(known[:, None], b[:, :3] - pad[:, None], -1e30)
+    hi = np.where(known[:, None], b[:, 3:] + pad[:, None], 1e30)
+    return np.stack([lo, hi], axis=1).reshape(-1, 3).astype(np.float32)
 
 
 @wp.kernel
@@ -74,6 +111,7 @@ def cast_kernel(
     meshes: wp.array[wp.uint64],
     inv_poses: wp.array[wp.transform],
     moved: wp.array[wp.int32],
+    boxes: wp.array[wp.vec3],
     origins: wp.array[wp.vec3],
     directions: wp.array[wp.vec3],
     max_ranges: wp.array[float],
@@ -95,7 +133,7 @@ def cast_kernel(
     normal = wp.vec3(0.0, 0.0, 0.0)
     if max_t > 0.0:
         t, m, face, normal = closest_hit(
-            meshes, inv_poses, moved, origins[i * origin_stride], wp.normalize(directions[i]), max_t
+            meshes, inv_poses, moved, boxes, origins[i * origin_stride], wp.normalize(directions[i]), max_t
         )
         if m < 0:
             t = float(wp.inf)
@@ -307,6 +345,7 @@ class RayCaster:
         self._ids: wp.array | None = None
         self._inv: tuple[wp.array, wp.array] | None = None  # inverse poses, moved flags
         self._region_cache: tuple | None = None  # scene_within's boxes and arrays of the live meshes
+        self._boxes: wp.array | None = None  # the live meshes' padded bounds (closest_hit)
         self.meshes_cast = 0  # meshes the last launch within a region visited (diagnostics)
         self._live = np.zeros(0, np.int32)  # handle of each mesh in the arrays the kernels see
         self._lock = threading.Lock()
@@ -360,6 +399,7 @@ class RayCaster:
             self._ids = None
             self._inv = None
             self._region_cache = None
+            self._boxes = None
             handle = len(self._meshes) - 1
         if pose is not None:
             self.set_pose(handle, pose)
@@ -386,6 +426,7 @@ class RayCaster:
             self._ids = None
             self._inv = None
             self._region_cache = None
+            self._boxes = None
 
     def set_pose(self, handle: int, T_world_mesh) -> None:
         """Place a mesh rigidly in the world (4×4 homogeneous, rotation part orthonormal)."""
@@ -413,6 +454,7 @@ class RayCaster:
             self._inv_xforms[h] = xf
         self._inv = None
         self._region_cache = None
+        self._boxes = None
 
     def update_vertices(self, handle: int, vertices) -> None:
         """Replace a mesh's vertex positions (same count and faces) and refit its BVH."""
@@ -427,10 +469,19 @@ class RayCaster:
         mesh.refit()
         info.bounds = np.concatenate([v.min(axis=0), v.max(axis=0)]).astype(np.float64)
         self._region_cache = None
+        self._boxes = None
 
-    def scene_arrays(self) -> tuple[wp.array, wp.array, wp.array]:
-        """The scene's meshes as the kernels see them: BVH ids, inverse poses, moved flags (mesh ``k`` of
-        these arrays has handle ``live_handles[k]``)."""
+    def _bounds(self, live) -> np.ndarray:
+        """``(M, 6)`` own-frame bounds of the meshes ``live`` (handles); NaN where unknown."""
+        return np.array(
+            [self._info[h].bounds if self._info[h].bounds is not None else [np.nan] * 6 for h in live],
+            np.float64,
+        ).reshape(-1, 6)
+
+    def scene_arrays(self) -> tuple[wp.array, wp.array, wp.array, wp.array]:
+        """The scene's meshes as the kernels see them: BVH ids, inverse poses, moved flags, padded boxes
+        (two rows a mesh, :func:`closest_hit`); mesh ``k`` of these arrays has handle
+        ``live_handles[k]``."""
         live = [h for h, m in enumerate(self._meshes) if m is not None]
         if not live:
             raise InputError("the ray-casting scene has no mesh: add one before casting")
@@ -447,38 +498,34 @@ class RayCaster:
                 ),
                 wp.array(moved, dtype=wp.int32, device=self.device),
             )
-        return self._ids, *self._inv
+        if self._boxes is None:
+            self._boxes = wp.array(padded_boxes(self._bounds(self._live)), dtype=wp.vec3, device=self.device)
+        return self._ids, *self._inv, self._boxes
 
-    def scene_within(self, region) -> tuple[wp.array, wp.array, wp.array, np.ndarray]:
+    def scene_within(self, region) -> tuple[wp.array, wp.array, wp.array, wp.array, np.ndarray]:
         """:meth:`scene_arrays` of the meshes that a ray within ``region`` can hit, and their handles:
         ``region`` is a world box ``(6,)`` (xmin, ymin, zmin, xmax, ymax, zmax) that holds every ray of the
         launch from its origin to its end. A mesh whose box lies outside it cannot be hit, so the kernels
         need not visit it (a map held as many tiles: the tiles far from the particles); meshes placed away
         from the identity pose are always kept. Exact: the hits are those of the whole scene."""
         with self._lock:
-            ids, inv, moved = self.scene_arrays()
+            ids, inv, moved, boxes = self.scene_arrays()
             live = self._live
             if region is None or not np.isfinite(region).all():
-                return ids, inv, moved, live
+                return ids, inv, moved, boxes, live
             if self._region_cache is None:
-                b = np.array(
-                    [
-                        self._info[h].bounds
-                        if self._info[h].bounds is not None
-                        else [-np.inf] * 3 + [np.inf] * 3
-                        for h in live
-                    ],
-                    np.float64,
-                ).reshape(-1, 6)
-                self._region_cache = (b, moved.numpy().astype(bool), ids.numpy(), inv.numpy())
-            b, is_moved, ids_np, inv_np = self._region_cache
+                b = self._bounds(live)
+                b[np.isnan(b).any(axis=1)] = [-np.inf] * 3 + [np.inf] * 3
+                arrays = (ids.numpy(), inv.numpy(), boxes.numpy().reshape(-1, 2, 3))
+                self._region_cache = (b, moved.numpy().astype(bool), *arrays)
+            b, is_moved, ids_np, inv_np, boxes_np = self._region_cache
         r = np.asarray(region, np.float64)
         pad = 1e-3 + 1e-6 * np.abs(r).max()  # float32 rays: a hit exactly on the region's face still counts
         r = np.concatenate([r[:3] - pad, r[3:] + pad])
         keep = is_moved | ((b[:, :3] <= r[3:]) & (b[:, 3:] >= r[:3])).all(axis=1)
         self.meshes_cast = int(keep.sum())
         if keep.all():
-            return ids, inv, moved, live
+            return ids, inv, moved, boxes, live
         if not keep.any():  # nothing within reach: one mesh all the same (the kernels need one); no hit
             keep[0] = True
         sel = np.flatnonzero(keep)
@@ -487,6 +534,7 @@ class RayCaster:
             wp.array(ids_np[sel], dtype=wp.uint64, device=dev),
             wp.array(inv_np[sel], dtype=wp.transform, device=dev),
             wp.array(is_moved[sel].astype(np.int32), dtype=wp.int32, device=dev),
+            wp.array(boxes_np[sel].reshape(-1, 3), dtype=wp.vec3, device=dev),
             live[sel],
         )
 
@@ -534,20 +582,26 @@ class RayCaster:
             )
             if not np.isfinite(r).all():
                 region = None  # an endless ray: every mesh
-            ids, inv, moved, live = self.scene_within(region)
+            ids, inv, moved, boxes, live = self.scene_within(region)
         else:
             with self._lock:
-                ids, inv, moved = self.scene_arrays()
+                ids, inv, moved, boxes = self.scene_arrays()
                 live = self._live
         if only is not None:
             self._check_handle(only)
             k = int(np.searchsorted(live, only))
-            ids, inv, moved = ids[k : k + 1], inv[k : k + 1], moved[k : k + 1]
+            ids, inv, moved, boxes = (
+                ids[k : k + 1],
+                inv[k : k + 1],
+                moved[k : k + 1],
+                boxes[2 * k : 2 * k + 2],
+            )
         dev = self.device
         inputs = [
             ids,
             inv,
             moved,
+            boxes,
             # on the CPU the kernel reads the numpy buffers in place (they are contiguous float32 here)
             wp.array(o, dtype=wp.vec3, device=dev, copy=dev != "cpu"),
             wp.array(d, dtype=wp.vec3, device=dev, copy=dev != "cpu"),

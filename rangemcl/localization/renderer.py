@@ -34,6 +34,7 @@ def particle_residual_kernel(
     meshes: wp.array[wp.uint64],
     inv_poses: wp.array[wp.transform],
     moved: wp.array[wp.int32],
+    boxes: wp.array[wp.vec3],
     particles: wp.array[wp.vec3],  # (x, y, yaw)
     sensor_z: wp.array[float],  # sensor height in the world at each particle
     directions: wp.array[wp.vec3],  # measured rays, levelled sensor frame, unit
@@ -71,7 +72,7 @@ def particle_residual_kernel(
         dw = wp.vec3(c * d[0] - s * d[1], s * d[0] + c * d[1], d[2])
         ow = base + wp.vec3(c * o[0] - s * o[1], s * o[0] + c * o[1], o[2])
         limit = measured[i] + margin
-        t, m, _face, _normal = closest_hit(meshes, inv_poses, moved, ow, dw, limit)
+        t, m, _face, _normal = closest_hit(meshes, inv_poses, moved, boxes, ow, dw, limit)
         r = float(margin)
         lim = cap
         far = structure[i]  # a miss: the scan met something where the map has nothing (or wrong pose)
@@ -236,13 +237,14 @@ class ParticleRenderer:
                 [p[:, 0].max() + reach, p[:, 1].max() + reach, z.max() + reach],
             ]
         )
-        ids, inv, moved, _handles = c.scene_within(region)
+        ids, inv, moved, boxes, _handles = c.scene_within(region)
         dev = c.device
         cpu = dev == "cpu"
         inputs = [
             ids,
             inv,
             moved,
+            boxes,
             wp.array(p, dtype=wp.vec3, device=dev, copy=not cpu),
             wp.array(z, dtype=float, device=dev, copy=not cpu),
             *self._rays,

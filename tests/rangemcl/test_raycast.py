@@ -971,6 +971,38 @@ def test_a_map_cast_tile_by_tile_hits_exactly_what_the_whole_mesh_hits(tmp_path)
     np.testing.assert_allclose(b.ranges[ok], ref["t"][ok], rtol=1e-5, atol=1e-4)
 
 
+def test_flat_tiles_are_hit_by_grazing_rays_and_rays_along_their_borders():
+    """The per-ray box test that skips the tiles a ray does not meet (``closest_hit``): tiles of a flat
+    ground have boxes of zero height, and rays that graze them (1 in 50 downwards) or run exactly along a
+    tile border still hit them, at the analytic range, as the whole mesh does."""
+    from rangemcl.mapping.meshmap import MeshMap
+    from rangemcl.raycast import padded_boxes
+
+    v, f = meshgen.grid_patch((-40.0, -40.0, 0.0), (80.0, 0, 0), (0, 80.0, 0), 16, 16)
+    m = MeshMap.from_mesh(v, f, tile_size_m=20.0)
+    tiled = RayCaster("cpu", threads=2)
+    for k in range(len(m.tiles)):
+        used, tf = np.unique(m.faces[m.tile_faces([k])], return_inverse=True)
+        tiled.add_mesh(m.vertices[used], tf.reshape(-1, 3), name=f"t{k}")
+    assert np.ptp([c.bounds[2] for c in tiled.meshes]) == 0.0 and len(tiled.meshes) == 16
+    whole = RayCaster("cpu", threads=2)
+    whole.add_mesh(v, f)
+    rng = np.random.default_rng(8)
+    n = 2000
+    o = np.column_stack([rng.uniform(-15, 15, n), rng.uniform(-15, 15, n), np.full(n, 0.5)])
+    o[: n // 4, 0] = 0.0  # on a tile border ...
+    d = np.column_stack([rng.normal(size=n), rng.normal(size=n), np.zeros(n)])
+    d[: n // 4, 0] = 0.0  # ... and along it
+    d[:, :2] /= np.linalg.norm(d[:, :2], axis=1, keepdims=True)
+    d[:, 2] = -0.02
+    a, b = whole.cast(o, d, 60.0), tiled.cast(o, d, 60.0)
+    assert np.isfinite(b.ranges).all()
+    np.testing.assert_allclose(b.ranges, 0.5 / 0.02 * np.linalg.norm(d, axis=1), rtol=1e-4)
+    np.testing.assert_allclose(a.ranges, b.ranges, rtol=1e-5)
+    box = padded_boxes(np.array([[0.0, 0.0, 0.0, 1.0, 1.0, 0.0], [np.nan] * 6]))
+    assert box[1, 2] > 0.0 > box[0, 2] and (box[2] < -1e20).all() and (box[3] > 1e20).all()
+
+
 def test_a_removed_mesh_is_gone_and_the_other_handles_stay():
     """remove_mesh (a tile leaving the memory budget): the scene casts as if the mesh had never been
     added, hits name the remaining meshes by their own handles, and a new mesh gets a new handle."""
