@@ -10,7 +10,9 @@ watches).
 * ``likelihood_field``: the beam-end model (Thrun et al.) on a 10 cm voxel map of the mesh's surface (the
   mesh sampled densely, one point per occupied voxel): each ray's end point at the particle's pose is
   scored by its distance ``e`` to the nearest occupied voxel, ``log p = w · mean log(z_hit · exp(−½
-  e²/σ²) + z_rand)``; badness ``mean min(e, 1 m)``. Rays are not cast through the map at all.
+  e²/σ²) + z_rand)``; badness ``mean min(e, 1 m)``. Rays are not cast through the map at all. Over a
+  map held within a memory budget (``--map-memory``) the voxels are made and held tile by tile with the
+  tiles the budget holds (:class:`TiledLikelihoodFieldModel`).
 * ``histogram`` (after Röhling et al., IROS 2015): range histograms of the measured rays and of the rays
   rendered at the particle's pose, compared by the Wasserstein distance of their normalised histograms
   (as a share of the histogram range); ``log p = −½ (W / σ_h)²``; badness ``W``. Histograms do not see
@@ -160,12 +162,87 @@ class LikelihoodFieldModel(ScoringModel):
             y = p[:, 1:2] + s * ends_local[None, :, 0] + c * ends_local[None, :, 1]
             z = np.asarray(sensor_z)[lo : lo + chunk, None] + ends_local[None, :, 2]
             pts = np.stack([x, y, z], axis=-1).reshape(-1, 3)
-            e, _ = self.tree.query(pts, distance_upper_bound=1.0, workers=-1)
-            e = np.minimum(e, 1.0).reshape(len(p), -1)  # beyond 1 m (inf from the query): 1 m
+            e = self.distances(pts).reshape(len(p), -1)
             like = self.z_hit * np.exp(-0.5 * (e / self.sigma) ** 2) + self.z_rand
             loglik[lo : lo + chunk] = self.weight * np.log(like).mean(axis=1)
             bad[lo : lo + chunk] = e.mean(axis=1)
         return loglik, bad
+
+    def distances(self, pts: np.ndarray) -> np.ndarray:
+        """``(P,)`` distance of each point ``(P, 3)`` to the nearest surface voxel's centre, 1 m where none
+        lies within 1 m."""
+        e, _ = self.tree.query(pts, distance_upper_bound=1.0, workers=-1)
+        return np.minimum(e, 1.0)  # beyond 1 m (inf from the query): 1 m
+
+
+# bytes a surface voxel takes in a k-d tree: its centre (3 float64), which the tree shares, and 24 for the
+# tree's index and nodes (scipy's cKDTree: the resident memory grew by 24 B a voxel beyond the centres
+# when a tree of 3 M random points was built, 2026-12-04)
+FIELD_BYTES_PER_VOXEL = 48
+
+
+class TiledLikelihoodFieldModel(LikelihoodFieldModel):
+    """The likelihood field over a map held within a memory budget (:class:`rangemcl.mapping.view.
+    MapView`): the surface voxels of each tile the view holds, at the level it holds it (full or coarse),
+    in one k-d tree a tile, made when the tile comes in (the voxels kept on disk per tile file, as
+    :func:`cached_surface_voxels` keeps a whole map's) and dropped when it leaves. Their bytes count
+    against the view's budget (``likelihood field`` among its derived items), so the tiles get what is
+    left at the next update. A beam end is looked up in the trees whose tile box, 1 m wider, holds it:
+    the nearest voxel within 1 m is found as in one tree over the whole map (a face belongs to one tile,
+    so each voxel of the surface is in the tree of a tile whose box holds it)."""
+
+    def __init__(
+        self,
+        view,
+        *,
+        voxel_m: float = 0.1,
+        sigma_m: float = 0.2,
+        weight: float = 20.0,
+        z_hit: float = 0.9,
+        seed: int = 0,
+    ):
+        self.voxel = float(voxel_m)
+        self.sigma = float(sigma_m)
+        self.weight = float(weight)
+        self.z_hit, self.z_rand = float(z_hit), 1.0 - float(z_hit)
+        self.seed = int(seed)
+        self.view = view
+        self._trees: dict[int, tuple] = {}  # tile -> (level, tree, box lo (3,), box hi (3,), bytes)
+        self.voxels = 0
+        self.nbytes = 0
+
+    def sync(self) -> None:
+        """Follow the tiles the view holds: drop the trees of tiles that left (or changed level), make
+        those of tiles that came in, and count their bytes in the budget."""
+        from scipy.spatial import cKDTree
+
+        levels = dict(self.view.cache.levels)
+        for k in [k for k, t in self._trees.items() if levels.get(k) != t[0]]:
+            del self._trees[k]
+        for k, level in levels.items():
+            if k in self._trees:
+                continue
+            centres = tile_surface_voxels(self.view.store, k, bool(level), self.voxel, self.seed)
+            if len(centres) == 0:
+                continue
+            lo, hi = centres.min(axis=0) - 1.0, centres.max(axis=0) + 1.0
+            self._trees[k] = (level, cKDTree(centres), lo, hi, FIELD_BYTES_PER_VOXEL * len(centres))
+        self.voxels = sum(t[1].n for t in self._trees.values())
+        self.nbytes = sum(t[4] for t in self._trees.values())
+        self.view.reserve("likelihood field", self.nbytes)
+
+    def score(self, rays, particles, sensor_z, chunk: int = 1000):
+        self.sync()
+        return super().score(rays, particles, sensor_z, chunk)
+
+    def distances(self, pts: np.ndarray) -> np.ndarray:
+        e = np.ones(len(pts))
+        for _level, tree, lo, hi, _n in self._trees.values():
+            inside = np.flatnonzero(((pts >= lo) & (pts <= hi)).all(axis=1))
+            if len(inside):
+                d, _ = tree.query(pts[inside], distance_upper_bound=1.0, workers=-1)
+                e[inside] = np.minimum(e[inside], d)
+        return np.minimum(e, 1.0)
 
 
 def surface_voxels(
@@ -202,24 +279,13 @@ def surface_voxels(
     return (ijk + lo + 0.5) * voxel_m
 
 
-def cached_surface_voxels(mesh_map, voxel_m: float, seed: int = 0) -> np.ndarray:
-    """:func:`surface_voxels` of a map, kept in a cache file when the map was loaded from a folder (a
-    town-sized map takes minutes): ``$RANGEMCL_CACHE_DIR``, else ``$XDG_CACHE_HOME/rangemcl``, else
-    ``~/.cache/rangemcl``; keyed by the map's tile index or mesh file (path, size, modification time) and
-    the settings."""
+def _voxel_cache(key: str, compute) -> np.ndarray:
+    """``compute()``'s voxel centres, kept in the cache directory under ``key`` (module functions)."""
     import hashlib
     import os
 
     from rangemcl.atomic import atomic_write
 
-    src = getattr(mesh_map, "source_dir", None)
-    mesh = None  # the file that changes whenever the mesh does: the tile index (format 2) or mesh.ply (1)
-    if src is not None:
-        mesh = next((Path(src) / n for n in ("tiles.json", "mesh.ply") if (Path(src) / n).is_file()), None)
-    if mesh is None:
-        return surface_voxels(mesh_map.vertices, mesh_map.faces, voxel_m, seed=seed)
-    st = mesh.stat()
-    key = f"{mesh.resolve()}|{st.st_size}|{st.st_mtime_ns}|{voxel_m!r}|{seed}|v2"
     root = os.environ.get("RANGEMCL_CACHE_DIR") or (
         Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "rangemcl"
     )
@@ -230,13 +296,42 @@ def cached_surface_voxels(mesh_map, voxel_m: float, seed: int = 0) -> np.ndarray
             return centres
     except (OSError, ValueError):
         pass
-    centres = surface_voxels(mesh_map.vertices, mesh_map.faces, voxel_m, seed=seed)
+    centres = compute()
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write(path, lambda fh: np.save(fh, centres))
     except (OSError, InputError):
         pass  # no cache: only slower next time
     return centres
+
+
+def tile_surface_voxels(store, k: int, coarse: bool, voxel_m: float, seed: int = 0) -> np.ndarray:
+    """:func:`surface_voxels` of tile ``k`` of a :class:`~rangemcl.mapping.store.TileStore` (its coarse
+    level with ``coarse``), kept in the cache directory keyed by the tile file and its checksum."""
+    e = store.entries[k].coarse if coarse else store.entries[k]
+    key = f"{(Path(store.map_dir) / e.file).resolve()}|{e.sha256}|{voxel_m!r}|{seed}|tile-v1"
+
+    def compute() -> np.ndarray:
+        v, f, _g = store.read(k, coarse=coarse)
+        return surface_voxels(v, f, voxel_m, seed=seed) if len(f) else np.zeros((0, 3))
+
+    return _voxel_cache(key, compute)
+
+
+def cached_surface_voxels(mesh_map, voxel_m: float, seed: int = 0) -> np.ndarray:
+    """:func:`surface_voxels` of a map, kept in a cache file when the map was loaded from a folder (a
+    town-sized map takes minutes): ``$RANGEMCL_CACHE_DIR``, else ``$XDG_CACHE_HOME/rangemcl``, else
+    ``~/.cache/rangemcl``; keyed by the map's tile index or mesh file (path, size, modification time) and
+    the settings."""
+    src = getattr(mesh_map, "source_dir", None)
+    mesh = None  # the file that changes whenever the mesh does: the tile index (format 2) or mesh.ply (1)
+    if src is not None:
+        mesh = next((Path(src) / n for n in ("tiles.json", "mesh.ply") if (Path(src) / n).is_file()), None)
+    if mesh is None:
+        return surface_voxels(mesh_map.vertices, mesh_map.faces, voxel_m, seed=seed)
+    st = mesh.stat()
+    key = f"{mesh.resolve()}|{st.st_size}|{st.st_mtime_ns}|{voxel_m!r}|{seed}|v2"
+    return _voxel_cache(key, lambda: surface_voxels(mesh_map.vertices, mesh_map.faces, voxel_m, seed=seed))
 
 
 def make_model(name: str, caster, settings, mesh_map) -> ScoringModel:
@@ -254,10 +349,9 @@ def make_model(name: str, caster, settings, mesh_map) -> ScoringModel:
     if name == "histogram":
         kernel = ParticleRenderer(caster, margin_m=max(o.max_range_m, 1.0))
         return HistogramModel(kernel, o.histogram_bins, o.max_range_m, o.histogram_sigma)
-    if name == "likelihood_field" and not hasattr(mesh_map, "vertices"):
-        raise InputError(
-            "the likelihood_field model needs the whole map's surface: not with a memory budget "
-            "(--map-memory)"
+    if name == "likelihood_field" and hasattr(mesh_map, "reserve"):  # a map within a memory budget
+        return TiledLikelihoodFieldModel(
+            mesh_map, voxel_m=o.field_voxel_m, sigma_m=o.field_sigma_m, weight=o.field_weight
         )
     if name == "likelihood_field":
         return LikelihoodFieldModel(

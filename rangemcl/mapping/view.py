@@ -29,8 +29,9 @@ what the budget leaves after the particles' tiles and the prefetch ring (never w
 way of a tile the car drives into), and a place is scored only once all its tiles in range are held, so
 that it is scored as against the whole map (the places not yet scoreable are counted in the summary).
 
-What the view does not do yet (issue 17, next steps): the likelihood-field model needs the whole mesh
-(an error says so).
+The likelihood-field model (a baseline) makes its surface voxels tile by tile for the tiles held
+(:class:`rangemcl.localization.models.TiledLikelihoodFieldModel`), and they count against the budget as
+well.
 
 The ground grid, the mapping drive and the index stay whole (13 bytes per m² of map, 16 bytes a drive
 point, a line per tile), and so do the place prior's profiles and the drivable area's cells: all of them
@@ -184,7 +185,9 @@ class MapView:
         """Count ``nbytes`` of something the localizer derives from the map and holds (the ground grid, the
         mapping drive, the place prior's profiles, the drivable area's cells) against the budget, under the
         name ``what`` (a second call with the same name replaces the first): the tiles get what is left.
-        Call it before the tiles are loaded; an error line when nothing is left for them."""
+        Call it before the tiles are loaded, or (an item that follows the tiles held, the likelihood
+        field's voxels) between updates: the next update evicts what no longer fits. An error line when
+        nothing is left for the tiles."""
         self.derived[what] = int(nbytes)
         left = self.budget_bytes - sum(self.derived.values())
         if left <= 0:

@@ -217,3 +217,54 @@ def test_what_the_filter_derives_from_the_map_counts_against_the_budget(tiled, t
     assert 0 < view.cache.peak_bytes <= view.cache.budget_bytes
     assert view.summary()["derived_mb"]["place prior"] == pytest.approx(loc.prior.nbytes / 1e6)
     view.close()
+
+
+def test_the_likelihood_field_is_made_tile_by_tile_within_the_budget(tiled, tmp_path, monkeypatch):
+    """The likelihood-field baseline over a map within a budget: the surface voxels of the held tiles,
+    one k-d tree a tile, give the distances of the whole map's field (a few voxels differ where the
+    random samples fell otherwise), and a tracking run gives, bit for bit, the run over the whole map
+    with the same voxels in one tree; the voxels' bytes are counted in the budget."""
+    import rangemcl.localization.models as models
+    from rangemcl.localization.models import (
+        FIELD_BYTES_PER_VOXEL,
+        LikelihoodFieldModel,
+        TiledLikelihoodFieldModel,
+        tile_surface_voxels,
+    )
+    from rangemcl.mapping.view import MapView
+    from rangemcl.raycast import RayCaster
+
+    monkeypatch.setenv("RANGEMCL_CACHE_DIR", str(tmp_path / "cache"))
+    seq, map_dir = tiled
+    whole_map = MeshMap.load(map_dir)
+    whole = LikelihoodFieldModel(models.cached_surface_voxels(whole_map, 0.2), voxel_m=0.2)
+    view = MapView(map_dir, 1000.0, RayCaster(threads=2), background=False)
+    try:
+        x0, y0, _z0, x1, y1, _z1 = view.extent
+        view.update(np.array([[0.5 * (x0 + x1), 0.5 * (y0 + y1)]]), 2.0 * max(x1 - x0, y1 - y0))
+        field = TiledLikelihoodFieldModel(view, voxel_m=0.2)
+        field.sync()
+        assert len(field._trees) == len(view.cache.items) > 10
+        assert view.derived["likelihood field"] == FIELD_BYTES_PER_VOXEL * field.voxels
+        assert view.cache.budget_bytes == view.budget_bytes - sum(view.derived.values())
+        rng = np.random.default_rng(3)
+        v = whole_map.vertices
+        pts = v[rng.integers(0, len(v), 4000)] + rng.normal(0, 0.3, (4000, 3))
+        a, b = whole.distances(pts), field.distances(pts)
+        assert np.median(np.abs(a - b)) == 0.0 and np.quantile(np.abs(a - b), 0.99) <= 0.2
+        assert abs(field.voxels - whole.voxels) <= 0.05 * whole.voxels  # (border voxels in two tiles)
+        union = np.vstack([tile_surface_voxels(view.store, k, False, 0.2) for k in range(len(view.tiles))])
+    finally:
+        view.close()
+    s = settings(20.0)
+    s.observation.model = "likelihood_field"
+    s.observation.field_voxel_m = 0.2
+    summary = run(seq, map_dir, tmp_path / "view", s, map_memory_mb=1000.0)
+    monkeypatch.setattr(models, "cached_surface_voxels", lambda m, voxel_m, seed=0: union)
+    run(seq, map_dir, tmp_path / "whole", s)
+    assert (tmp_path / "view" / "estimate_kitti.txt").read_bytes() == (
+        tmp_path / "whole" / "estimate_kitti.txt"
+    ).read_bytes()
+    m = json.loads((tmp_path / "view" / "metrics.json").read_text())
+    assert m["success"] and m["location_rmse_m"] < 0.1
+    assert summary["map_memory"]["derived_mb"]["likelihood field"] > 0
