@@ -183,7 +183,8 @@ FIELD_BYTES_PER_VOXEL = 48
 
 class TiledLikelihoodFieldModel(LikelihoodFieldModel):
     """The likelihood field over a map held within a memory budget (:class:`rangemcl.mapping.view.
-    MapView`): the surface voxels of each tile the view holds, at the level it holds it (full or coarse),
+    MapView`): the surface voxels of each tile the view holds within the rays' reach of the particles
+    (not the tiles loaded ahead), at the level it holds it (full or coarse),
     in one k-d tree a tile, made when the tile comes in (the voxels kept on disk per tile file, as
     :func:`cached_surface_voxels` keeps a whole map's) and dropped when it leaves. Their bytes count
     against the view's budget (``likelihood field`` among its derived items), so the tiles get what is
@@ -212,11 +213,12 @@ class TiledLikelihoodFieldModel(LikelihoodFieldModel):
         self.nbytes = 0
 
     def sync(self) -> None:
-        """Follow the tiles the view holds: drop the trees of tiles that left (or changed level), make
-        those of tiles that came in, and count their bytes in the budget."""
+        """Follow the tiles the view holds within reach: drop the trees of tiles that left (or changed
+        level), make those of tiles that came in, and count their bytes in the budget."""
         from scipy.spatial import cKDTree
 
-        levels = dict(self.view.cache.levels)
+        held = self.view.cache.levels
+        levels = {k: held[k] for k in self.view.in_range if k in held}
         for k in [k for k, t in self._trees.items() if levels.get(k) != t[0]]:
             del self._trees[k]
         for k, level in levels.items():
@@ -229,7 +231,18 @@ class TiledLikelihoodFieldModel(LikelihoodFieldModel):
             self._trees[k] = (level, cKDTree(centres), lo, hi, FIELD_BYTES_PER_VOXEL * len(centres))
         self.voxels = sum(t[1].n for t in self._trees.values())
         self.nbytes = sum(t[4] for t in self._trees.values())
-        self.view.reserve("likelihood field", self.nbytes)
+        view = self.view
+        view.reserve("likelihood field", self.nbytes)
+        cache = view.cache
+        need = sum(min(s for s in cache.sizes[k] if s is not None) for k in levels)
+        if cache.budget_bytes < need:  # the tiles in range would be evicted for their own voxels
+            others = sum(v for k, v in view.derived.items() if k != "likelihood field")
+            raise InputError(
+                f"{view.source_dir}: --map-memory {view.budget_bytes / 1e6:g} MB is too small for the "
+                f"likelihood field here: the voxels of the tiles in range take {self.nbytes / 1e6:.0f} MB, "
+                f"the tiles {need / 1e6:.0f} MB, the rest of the map {others / 1e6:.0f} MB; give at least "
+                f"{(self.nbytes + need + others) / 1e6 * 1.2:.0f} MB"
+            )
 
     def score(self, rays, particles, sensor_z, chunk: int = 1000):
         self.sync()

@@ -268,3 +268,33 @@ def test_the_likelihood_field_is_made_tile_by_tile_within_the_budget(tiled, tmp_
     m = json.loads((tmp_path / "view" / "metrics.json").read_text())
     assert m["success"] and m["location_rmse_m"] < 0.1
     assert summary["map_memory"]["derived_mb"]["likelihood field"] > 0
+
+
+def test_a_budget_too_small_for_the_likelihood_field_is_one_clear_line(tiled, tmp_path, monkeypatch):
+    """The voxels take about 4x the tiles' bytes: a budget that holds the tiles in range but not their
+    voxels as well is refused with the size it needs, instead of evicting the tiles the field follows."""
+    from rangemcl.localization.models import TiledLikelihoodFieldModel
+    from rangemcl.mapping.view import MapView
+    from rangemcl.raycast import RayCaster
+
+    monkeypatch.setenv("RANGEMCL_CACHE_DIR", str(tmp_path / "cache"))
+    _seq, map_dir = tiled
+    probe = MapView(map_dir, 1000.0, RayCaster(threads=2), background=False)
+    x0, y0, _z0, x1, y1, _z1 = probe.extent
+    centre = np.array([[0.5 * (x0 + x1), 0.5 * (y0 + y1)]])
+    probe.update(centre, 15.0)
+    field = TiledLikelihoodFieldModel(probe, voxel_m=0.2)
+    field.sync()
+    tiles = probe.cache.nbytes
+    others = sum(v for k, v in probe.derived.items() if k != "likelihood field")
+    probe.close()
+    assert field.nbytes > tiles  # the voxels outweigh the BVHs
+    view = MapView(
+        map_dir, (others + tiles + 0.5 * field.nbytes) / 1e6, RayCaster(threads=2), background=False
+    )
+    try:
+        view.update(centre, 15.0)
+        with pytest.raises(InputError, match=r"too small for the likelihood field.*give at least"):
+            TiledLikelihoodFieldModel(view, voxel_m=0.2).sync()
+    finally:
+        view.close()
