@@ -190,7 +190,12 @@ class TiledLikelihoodFieldModel(LikelihoodFieldModel):
     against the view's budget (``likelihood field`` among its derived items), so the tiles get what is
     left at the next update. A beam end is looked up in the trees whose tile box, 1 m wider, holds it:
     the nearest voxel within 1 m is found as in one tree over the whole map (a face belongs to one tile,
-    so each voxel of the surface is in the tree of a tile whose box holds it)."""
+    so each voxel of the surface is in the tree of a tile whose box holds it).
+
+    The trees are made in a worker thread, as the view loads its tiles: an update that the view made
+    without waiting (tracking) scores with the trees that are ready and leaves the tiles whose tree is
+    still being made out of it (their beam ends count as far from any surface; ``building`` says how
+    many, ``updates_without_trees`` how often); a search, and the first update, wait for them."""
 
     def __init__(
         self,
@@ -208,29 +213,51 @@ class TiledLikelihoodFieldModel(LikelihoodFieldModel):
         self.z_hit, self.z_rand = float(z_hit), 1.0 - float(z_hit)
         self.seed = int(seed)
         self.view = view
-        self._trees: dict[int, tuple] = {}  # tile -> (level, tree, box lo (3,), box hi (3,), bytes)
+        self._trees: dict[int, tuple | None] = {}  # tile -> (level, tree, box lo, box hi, bytes); None: empty
+        self._pending: dict[int, tuple] = {}  # tile -> (level, future of the tree)
+        self._pool = None
         self.voxels = 0
         self.nbytes = 0
+        self.building = 0  # tiles in reach whose tree is not ready at the last update
+        self.updates_without_trees = 0
+
+    def _build(self, k: int, level: int):
+        from scipy.spatial import cKDTree
+
+        centres = tile_surface_voxels(self.view.store, k, bool(level), self.voxel, self.seed)
+        if len(centres) == 0:
+            return None
+        lo, hi = centres.min(axis=0) - 1.0, centres.max(axis=0) + 1.0
+        return (level, cKDTree(centres), lo, hi, FIELD_BYTES_PER_VOXEL * len(centres))
 
     def sync(self) -> None:
         """Follow the tiles the view holds within reach: drop the trees of tiles that left (or changed
-        level), make those of tiles that came in, and count their bytes in the budget."""
-        from scipy.spatial import cKDTree
+        level), start making those of tiles that came in (waiting for them when the view's last update
+        waited), take the finished ones, and count their bytes in the budget."""
+        from concurrent.futures import ThreadPoolExecutor
+        from concurrent.futures import wait as wait_futures
 
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(1, thread_name_prefix="field")
         held = self.view.cache.levels
         levels = {k: held[k] for k in self.view.in_range if k in held}
-        for k in [k for k, t in self._trees.items() if levels.get(k) != t[0]]:
+        for k in [k for k, t in self._trees.items() if t is not None and levels.get(k) != t[0]]:
             del self._trees[k]
+        for k in [k for k, (lvl, _fu) in self._pending.items() if levels.get(k) != lvl]:
+            self._pending.pop(k)[1].cancel()
         for k, level in levels.items():
-            if k in self._trees:
-                continue
-            centres = tile_surface_voxels(self.view.store, k, bool(level), self.voxel, self.seed)
-            if len(centres) == 0:
-                continue
-            lo, hi = centres.min(axis=0) - 1.0, centres.max(axis=0) + 1.0
-            self._trees[k] = (level, cKDTree(centres), lo, hi, FIELD_BYTES_PER_VOXEL * len(centres))
-        self.voxels = sum(t[1].n for t in self._trees.values())
-        self.nbytes = sum(t[4] for t in self._trees.values())
+            if k not in self._trees and k not in self._pending:
+                self._pending[k] = (level, self._pool.submit(self._build, k, level))
+        if self._pending and (getattr(self.view, "last_wait", True) or not self._trees):
+            wait_futures([fu for _lvl, fu in self._pending.values()])
+        for k in [k for k, (_lvl, fu) in self._pending.items() if fu.done()]:
+            self._trees[k] = self._pending.pop(k)[1].result()
+        self.building = len(self._pending)
+        self.updates_without_trees += self.building > 0
+        self._trees = {k: t for k, t in self._trees.items() if k in levels}
+        trees = [t for t in self._trees.values() if t is not None]
+        self.voxels = sum(t[1].n for t in trees)
+        self.nbytes = sum(t[4] for t in trees)
         view = self.view
         view.reserve("likelihood field", self.nbytes)
         cache = view.cache
@@ -248,9 +275,15 @@ class TiledLikelihoodFieldModel(LikelihoodFieldModel):
         self.sync()
         return super().score(rays, particles, sensor_z, chunk)
 
+    def close(self) -> None:
+        """Stop the worker thread."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
     def distances(self, pts: np.ndarray) -> np.ndarray:
         e = np.ones(len(pts))
-        for _level, tree, lo, hi, _n in self._trees.values():
+        for _level, tree, lo, hi, _n in (t for t in self._trees.values() if t is not None):
             inside = np.flatnonzero(((pts >= lo) & (pts <= hi)).all(axis=1))
             if len(inside):
                 d, _ = tree.query(pts[inside], distance_upper_bound=1.0, workers=-1)

@@ -153,6 +153,7 @@ class MapView:
         self.left_out_updates = 0  # updates at which a wanted tile did not fit
         self._last: tuple[np.ndarray, float] | None = None  # the last update's focus points and radius
         self.in_range: list[int] = []  # the tiles within the last update's radius that are held
+        self.last_wait = True
         self._extra_xy: np.ndarray | None = None  # places consulted (consult), kept for a few updates
         self._extra_left = 0
         self.consulted_places = 0  # places named to consult over the run ...
@@ -227,6 +228,7 @@ class MapView:
                 + ")"
             )
         self.in_range = list(r.held)  # the tiles within the radius held now (the likelihood field's)
+        self.last_wait = bool(wait)  # ... and whether this update waited for them
         self.updates += 1
         self.loads += len(r.loaded)
         self.left_out_updates += bool(r.left_out)

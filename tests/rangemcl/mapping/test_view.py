@@ -298,3 +298,44 @@ def test_a_budget_too_small_for_the_likelihood_field_is_one_clear_line(tiled, tm
             TiledLikelihoodFieldModel(view, voxel_m=0.2).sync()
     finally:
         view.close()
+
+
+def test_a_slow_likelihood_field_tree_does_not_hold_up_a_tracking_update(tiled, tmp_path, monkeypatch):
+    """Each tile's voxels take 0.3 s to make: the first update waits for its trees, a tracking update
+    (the view's update without waiting) goes on with the trees that are ready and says how many are
+    still being made; they are in at a later update."""
+    import rangemcl.localization.models as models
+    from rangemcl.mapping.view import MapView
+    from rangemcl.raycast import RayCaster
+
+    monkeypatch.setenv("RANGEMCL_CACHE_DIR", str(tmp_path / "cache"))
+    made = models.tile_surface_voxels
+
+    def slow(*a, **k):
+        time.sleep(0.3)
+        return made(*a, **k)
+
+    monkeypatch.setattr(models, "tile_surface_voxels", slow)
+    _seq, map_dir = tiled
+    view = MapView(map_dir, 1000.0, RayCaster(threads=2), background=False)
+    field = models.TiledLikelihoodFieldModel(view, voxel_m=0.2)
+    try:
+        a, b = view.drive_xy[:1], view.drive_xy[-1:]  # the mapping drive's ends, about 40 m apart
+        view.update(a, 5.0, wait=False)  # the first: waits all the same
+        field.sync()
+        first = dict(field._trees)
+        assert first and field.building == 0
+        view.update(np.vstack([a, b]), 5.0, wait=False)  # the other end's tiles as well
+        t0 = time.perf_counter()
+        field.sync()
+        assert time.perf_counter() - t0 < 0.2 and field.building > 0 and field.updates_without_trees == 1
+        assert set(field._trees) == set(first)  # the new tiles' trees are still being made
+        time.sleep(0.4 * field.building + 0.5)
+        field.sync()
+        assert field.building == 0 and set(field._trees) == set(view.in_range)
+        view.update(b, 30.0, wait=True)  # a search waits
+        field.sync()
+        assert field.building == 0 and set(field._trees) == set(view.in_range) > set(first)
+    finally:
+        field.close()
+        view.close()
