@@ -453,8 +453,7 @@ class RayCaster:
             self._poses[h] = Tk
             self._inv_xforms[h] = xf
         self._inv = None
-        self._region_cache = None
-        self._boxes = None
+        self._region_cache = None  # (the boxes are in each mesh's own frame: a pose leaves them as they are)
 
     def update_vertices(self, handle: int, vertices) -> None:
         """Replace a mesh's vertex positions (same count and faces) and refit its BVH."""

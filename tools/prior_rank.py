@@ -5,6 +5,7 @@ error of the aligned yaw there.
 
     python tools/prior_rank.py --seq out/demo/test_drive --map out/demo/map
     python tools/prior_rank.py --seq SEQ --map MAP --every 5 --json prior_rank.json
+    python tools/prior_rank.py --seq SEQ --map BIG_MAP --map-memory 700   # a map too large to hold whole
 
 "The true place" is the best-matching cell within ``--radius`` (1.5 m: a 2 m grid has a cell centre
 within 1.42 m of any point) of the true sensor position; its rank counts the cells farther than
@@ -29,6 +30,11 @@ def run() -> None:
     ap.add_argument("--every", type=int, default=5)
     ap.add_argument("--radius", type=float, default=1.5)
     ap.add_argument("--json", help="also write the figures here")
+    ap.add_argument(
+        "--map-memory",
+        type=float,
+        help="open the map within this many MB (a map too large to hold whole); default: as localize does",
+    )
     args = ap.parse_args()
 
     from rangemcl.dataset import load_sequence
@@ -36,17 +42,17 @@ def run() -> None:
     from rangemcl.evaluate import xyyaw_of
     from rangemcl.localization.place_prior import circular_distance_deg, scan_profile
     from rangemcl.localize import _sensor_height
-    from rangemcl.mapping.meshmap import MeshMap
+    from rangemcl.mapping.view import open_map
     from rangemcl.mcl import LocalizerSettings, build_localizer
     from rangemcl.se2 import rotation_roll_pitch
 
     seq = load_sequence(args.seq)
-    mesh_map = MeshMap.load(args.map)
+    mesh_map, caster = open_map(args.map, args.map_memory)
     if seq.poses is None:
         raise InputError(f"{args.seq}: the drive has no poses.txt")
     settings = LocalizerSettings()
     height, _ = _sensor_height(seq, mesh_map, settings)
-    loc = build_localizer(mesh_map, settings, seed=0, sensor_height_m=height)
+    loc = build_localizer(mesh_map, settings, seed=0, sensor_height_m=height, caster=caster)
     t0 = time.perf_counter()
     prior = loc.place_prior()
     ready_s = time.perf_counter() - t0

@@ -132,7 +132,7 @@ class LikelihoodFieldModel(ScoringModel):
 
     def __init__(
         self,
-        centres: np.ndarray,
+        centres: np.ndarray | None,
         *,
         voxel_m: float = 0.1,
         sigma_m: float = 0.2,
@@ -140,15 +140,15 @@ class LikelihoodFieldModel(ScoringModel):
         z_hit: float = 0.9,
     ):
         """``centres``: the surface voxels' centres (:func:`surface_voxels` or :func:`cached_surface_voxels`
-        of the map)."""
+        of the map); None for a subclass that holds its own (:class:`TiledLikelihoodFieldModel`)."""
         from scipy.spatial import cKDTree
 
         self.voxel = float(voxel_m)
         self.sigma = float(sigma_m)
         self.weight = float(weight)
         self.z_hit, self.z_rand = float(z_hit), 1.0 - float(z_hit)
-        self.voxels = len(centres)
-        self.tree = cKDTree(centres)
+        self.voxels = 0 if centres is None else len(centres)
+        self.tree = None if centres is None else cKDTree(centres)
 
     def score(self, rays, particles, sensor_z, chunk: int = 1000):
         ends_local = rays.directions * rays.ranges[:, None]  # (R, 3) levelled sensor frame
@@ -207,16 +207,12 @@ class TiledLikelihoodFieldModel(LikelihoodFieldModel):
         z_hit: float = 0.9,
         seed: int = 0,
     ):
-        self.voxel = float(voxel_m)
-        self.sigma = float(sigma_m)
-        self.weight = float(weight)
-        self.z_hit, self.z_rand = float(z_hit), 1.0 - float(z_hit)
+        super().__init__(None, voxel_m=voxel_m, sigma_m=sigma_m, weight=weight, z_hit=z_hit)
         self.seed = int(seed)
         self.view = view
-        self._trees: dict[int, tuple | None] = {}  # tile -> (level, tree, box lo, box hi, bytes); None: empty
+        self._trees: dict[int, tuple] = {}  # tile -> (level, tree or None when empty, box lo, box hi, bytes)
         self._pending: dict[int, tuple] = {}  # tile -> (level, future of the tree)
         self._pool = None
-        self.voxels = 0
         self.nbytes = 0
         self.building = 0  # tiles in reach whose tree is not ready at the last update
         self.updates_without_trees = 0
@@ -226,7 +222,7 @@ class TiledLikelihoodFieldModel(LikelihoodFieldModel):
 
         centres = tile_surface_voxels(self.view.store, k, bool(level), self.voxel, self.seed)
         if len(centres) == 0:
-            return None
+            return (level, None, None, None, 0)
         lo, hi = centres.min(axis=0) - 1.0, centres.max(axis=0) + 1.0
         return (level, cKDTree(centres), lo, hi, FIELD_BYTES_PER_VOXEL * len(centres))
 
@@ -241,21 +237,20 @@ class TiledLikelihoodFieldModel(LikelihoodFieldModel):
             self._pool = ThreadPoolExecutor(1, thread_name_prefix="field")
         held = self.view.cache.levels
         levels = {k: held[k] for k in self.view.in_range if k in held}
-        for k in [k for k, t in self._trees.items() if t is not None and levels.get(k) != t[0]]:
+        for k in [k for k, t in self._trees.items() if levels.get(k) != t[0]]:
             del self._trees[k]
         for k in [k for k, (lvl, _fu) in self._pending.items() if levels.get(k) != lvl]:
             self._pending.pop(k)[1].cancel()
         for k, level in levels.items():
             if k not in self._trees and k not in self._pending:
                 self._pending[k] = (level, self._pool.submit(self._build, k, level))
-        if self._pending and (getattr(self.view, "last_wait", True) or not self._trees):
+        if self._pending and (self.view.last_wait or not self._trees):
             wait_futures([fu for _lvl, fu in self._pending.values()])
         for k in [k for k, (_lvl, fu) in self._pending.items() if fu.done()]:
             self._trees[k] = self._pending.pop(k)[1].result()
         self.building = len(self._pending)
         self.updates_without_trees += self.building > 0
-        self._trees = {k: t for k, t in self._trees.items() if k in levels}
-        trees = [t for t in self._trees.values() if t is not None]
+        trees = [t for t in self._trees.values() if t[1] is not None]
         self.voxels = sum(t[1].n for t in trees)
         self.nbytes = sum(t[4] for t in trees)
         view = self.view
@@ -283,7 +278,7 @@ class TiledLikelihoodFieldModel(LikelihoodFieldModel):
 
     def distances(self, pts: np.ndarray) -> np.ndarray:
         e = np.ones(len(pts))
-        for _level, tree, lo, hi, _n in (t for t in self._trees.values() if t is not None):
+        for _level, tree, lo, hi, _n in (t for t in self._trees.values() if t[1] is not None):
             inside = np.flatnonzero(((pts >= lo) & (pts <= hi)).all(axis=1))
             if len(inside):
                 d, _ = tree.query(pts[inside], distance_upper_bound=1.0, workers=-1)

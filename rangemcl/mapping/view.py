@@ -234,8 +234,7 @@ class MapView:
         self.left_out_updates += bool(r.left_out)
         self.coarse_updates += bool(r.coarse)
         self.longest_wait_ms = max(self.longest_wait_ms, r.wait_ms)
-        for k in r.broken:
-            print(f"warning: {self.cache.broken[k]}; localizing without that tile", file=sys.stderr)
+        self._warn_broken(r)
         return dict(
             map_tiles=len(r.held),
             map_left_out=len(r.left_out),
@@ -243,6 +242,11 @@ class MapView:
             map_mb=self.cache.nbytes / 1e6,
             map_load_ms=r.wait_ms,
         )
+
+    def _warn_broken(self, r) -> None:
+        """One line on stderr for each tile found broken at a request (the run goes on without it)."""
+        for k in r.broken:
+            print(f"warning: {self.cache.broken[k]}; localizing without that tile", file=sys.stderr)
 
     def consult(self, xy: np.ndarray, *, keep_updates: int = 3) -> np.ndarray:
         """Places to look at without moving there, ``(E, 2)``, best first (the lost detector's rival
@@ -258,8 +262,7 @@ class MapView:
         focus, radius = self._last
         r = self.cache.request(focus, radius, prefetch_m=self.prefetch_m, wait=False, extra_xy=xy)
         self.loads += len(r.loaded)
-        for k in r.broken:
-            print(f"warning: {self.cache.broken[k]}; localizing without that tile", file=sys.stderr)
+        self._warn_broken(r)
         near = tile_distances(self.store, xy, each=True) <= radius  # (T, E)
         held = np.zeros(len(self.store.entries), bool)
         held[list(self.cache.items)] = True

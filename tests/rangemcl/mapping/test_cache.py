@@ -104,19 +104,27 @@ def test_tiles_in_a_caster_leave_it_when_evicted(store):
     assert len(caster.live_handles) == len(cache.items) == 2
 
 
+def slow_cache(store, tiles: int, delay_s: float):
+    """A background cache whose disk takes ``delay_s`` a tile, with room for ``tiles`` tiles of ``store``;
+    also the tiles' (i, j) in index order."""
+    import time
+
+    def slow(s, k, coarse):
+        time.sleep(delay_s)
+        return s.read(k, coarse=coarse)
+
+    one = store.entries[0].vertices * 25 + store.entries[0].triangles * 12
+    cache = TileCache(store, budget_bytes=tiles * one, read=slow, background=True)
+    return cache, one, [e.ij for e in store.entries]
+
+
 def test_the_background_loader_does_not_block_a_request(store):
     """A slow disk (0.3 s a tile): a request that must not wait returns at once with what is held and
     reports the rest as left out and loading (unless it holds none of its tiles); the tiles enter at a
     later request; ``wait`` blocks until they are in. The budget counts the tiles being loaded."""
     import time
 
-    def slow(s, k, coarse):
-        time.sleep(0.3)
-        return s.read(k, coarse=coarse)
-
-    one = store.entries[0].vertices * 25 + store.entries[0].triangles * 12
-    ij = [e.ij for e in store.entries]
-    cache = TileCache(store, budget_bytes=3 * one, read=slow, background=True)
+    cache, one, ij = slow_cache(store, 3, 0.3)
     try:
         # nothing held yet: even a request that need not wait waits (a scene without its tiles is worse)
         r = cache.request([[10.0, 10.0]], 5.0, wait=False)
@@ -154,13 +162,7 @@ def test_extra_places_take_what_the_car_leaves_and_are_never_waited_for(store):
 
     from rangemcl.mapping.cache import EXTRA_LOADS
 
-    def slow(s, k, coarse):
-        time.sleep(0.2)
-        return s.read(k, coarse=coarse)
-
-    one = store.entries[0].vertices * 25 + store.entries[0].triangles * 12
-    ij = [e.ij for e in store.entries]
-    cache = TileCache(store, budget_bytes=6 * one, read=slow, background=True)
+    cache, _one, ij = slow_cache(store, 6, 0.2)
     try:
         car = [[10.0, 10.0]]  # tile (0, 0); the prefetch ring adds (1, 0), (0, 1) and (1, 1)
         cache.request(car, 5.0, prefetch_m=12.0, wait=True)
