@@ -201,6 +201,10 @@ class InitSettings:
     inject_share: float = 0.05  # while searching: fresh prior particles per update (of the cloud), at the
     inject_top: int = 30  # prior's best places for that scan ...
     inject_below_share: float = 1.0  # ... while no hypothesis holds this share of the weight (1: always)
+    inject_weight: float | None = 0.001  # the injected particles' share of the weight (None: inject_share).
+    # It is the prior odds the search gives a place it has not tested yet, and it bounds the sequential
+    # test: a rival place re-injected every update at weight w, fitting each scan rho times as well as the
+    # leader, holds about w / top / (1 - rho) of the weight (README, issue 13)
 
 
 @dataclass
@@ -328,7 +332,9 @@ class LocalizerSettings:
                 raise InputError(f"{where}: {key} must be >= 0, got {value}")
         if not math.isfinite(m.gyro_bias_deg_s):
             raise InputError(f"{where}: motion.gyro_bias_deg_s must be finite, got {m.gyro_bias_deg_s}")
-        for key in ("prior_share", "inject_share", "inject_below_share"):
+        for key in ("prior_share", "inject_share", "inject_below_share", "inject_weight"):
+            if getattr(self.init, key) is None and key == "inject_weight":
+                continue
             if not 0 <= getattr(self.init, key) <= 1:
                 raise InputError(f"{where}: init.{key} must be in [0, 1], got {getattr(self.init, key)}")
         if m.calibration not in ("estimator", "particles"):
@@ -558,6 +564,7 @@ def build_localizer(
         inject_share=i.inject_share,
         inject_top=i.inject_top,
         inject_below_share=i.inject_below_share,
+        inject_weight=i.inject_share if i.inject_weight is None else i.inject_weight,
         convergence=c.method,
         tiles=c.tiles,
         max_radius_m=c.max_radius_m,

@@ -159,6 +159,7 @@ class MonteCarloLocalizer:
         inject_share: float = 0.05,
         inject_top: int = 30,
         inject_below_share: float = 1.0,
+        inject_weight: float | None = None,
         # convergence
         convergence: str = "hypotheses",
         tiles: int = 1,
@@ -220,6 +221,7 @@ class MonteCarloLocalizer:
         self.inject_share = float(inject_share)
         self.inject_top = int(inject_top)
         self.inject_below_share = float(inject_below_share)
+        self.inject_weight = self.inject_share if inject_weight is None else float(inject_weight)
         self.convergence = convergence
         self.tiles = int(tiles)
         self.max_radius_m = float(max_radius_m)
@@ -654,7 +656,10 @@ class MonteCarloLocalizer:
             if fresh is not None:
                 parts = np.vstack([parts, fresh])
                 logw = np.concatenate(
-                    [logw + math.log(1.0 - self.inject_share), np.full(k, math.log(self.inject_share / k))]
+                    [
+                        logw + math.log1p(-min(self.inject_weight, 1.0 - 1e-12)),
+                        np.full(k, math.log(max(self.inject_weight, 1e-300) / k)),
+                    ]
                 )
                 leader = np.concatenate([leader, np.zeros(k, bool)])
         self.particles, self.log_w, self._leader = parts, logw, leader
