@@ -204,7 +204,9 @@ class InitSettings:
     inject_weight: float | None = 0.001  # the injected particles' share of the weight (None: inject_share).
     # It is the prior odds the search gives a place it has not tested yet, and it bounds the sequential
     # test: a rival place re-injected every update at weight w, fitting each scan rho times as well as the
-    # leader, holds about w / top / (1 - rho) of the weight (README, issue 13)
+    # leader, holds about w / top / (1 - rho) of the weight (README, issue 13) ...
+    inject_held: bool = False  # ... so fresh particles go only to places the search does not hold yet
+    # (no held particle within about convergence.cluster_m and 20 degrees); True: everywhere (revision 7)
 
 
 @dataclass
@@ -565,6 +567,7 @@ def build_localizer(
         inject_top=i.inject_top,
         inject_below_share=i.inject_below_share,
         inject_weight=i.inject_share if i.inject_weight is None else i.inject_weight,
+        inject_held=i.inject_held,
         convergence=c.method,
         tiles=c.tiles,
         max_radius_m=c.max_radius_m,

@@ -80,7 +80,7 @@ class Trial:
 # observation; revision 3: the second opinion on lost alarms; 4: ... confirmed at two updates; 5: issue
 # 19's scan-to-mesh refinement and online odometry calibration; 6: the refinement leaves out hits in the
 # lowest 2 m; 7: ... except in the first 10 updates after a search's convergence; 8: the prior's fresh
-# particles enter a search with 0.1 % of the weight instead of 5 %), so trials of earlier revisions (keys
+# particles enter a search with 0.1 % of the weight instead of 5 %, and only places it does not hold), so trials of earlier revisions (keys
 # without "-v8") are never taken for today's
 LOCALIZER_REVISION = 8
 

@@ -40,6 +40,7 @@ from rangemcl.localization.calibration import OdometryCalibrator, ParticleCalibr
 from rangemcl.localization.hypotheses import (
     ConvergenceTest,
     cluster_labels,
+    held_poses,
     kld_sample_size,
     occupied_bins,
     resample_by_cluster,
@@ -59,6 +60,9 @@ from rangemcl.particles import (
     sample_motion,
 )
 from rangemcl.se2 import odometry_increment, rotation_roll_pitch, se2_compose, wrap_angle
+
+HELD_YAW_RAD = math.radians(20.0)  # a fresh prior particle this close in yaw to a held one (and within
+# cluster_m) is a place the search holds already
 
 
 @dataclass
@@ -160,6 +164,7 @@ class MonteCarloLocalizer:
         inject_top: int = 30,
         inject_below_share: float = 1.0,
         inject_weight: float | None = None,
+        inject_held: bool = False,
         # convergence
         convergence: str = "hypotheses",
         tiles: int = 1,
@@ -222,6 +227,7 @@ class MonteCarloLocalizer:
         self.inject_top = int(inject_top)
         self.inject_below_share = float(inject_below_share)
         self.inject_weight = self.inject_share if inject_weight is None else float(inject_weight)
+        self.inject_held = bool(inject_held)
         self.convergence = convergence
         self.tiles = int(tiles)
         self.max_radius_m = float(max_radius_m)
@@ -653,15 +659,14 @@ class MonteCarloLocalizer:
         ):
             k = max(1, int(round(self.inject_share * n)))
             fresh = self._from_prior(k, levelled, self.inject_top)
-            if fresh is not None:
+            if fresh is not None and not self.inject_held:
+                fresh = fresh[~held_poses(parts, fresh, self.cluster_m, HELD_YAW_RAD)]
+            if fresh is not None and len(fresh):
+                share = min(self.inject_weight * len(fresh) / k, 1.0 - 1e-12)
                 parts = np.vstack([parts, fresh])
-                logw = np.concatenate(
-                    [
-                        logw + math.log1p(-min(self.inject_weight, 1.0 - 1e-12)),
-                        np.full(k, math.log(max(self.inject_weight, 1e-300) / k)),
-                    ]
-                )
-                leader = np.concatenate([leader, np.zeros(k, bool)])
+                each = math.log(max(self.inject_weight, 1e-300) / k)
+                logw = np.concatenate([logw + math.log1p(-share), np.full(len(fresh), each)])
+                leader = np.concatenate([leader, np.zeros(len(fresh), bool)])
         self.particles, self.log_w, self._leader = parts, logw, leader
         return out
 

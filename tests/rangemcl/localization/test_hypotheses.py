@@ -14,11 +14,13 @@ from rangemcl.localization.hypotheses import (
     ConvergenceTest,
     allocate,
     cluster_labels,
+    held_poses,
     kld_sample_size,
     occupied_bins,
     resample_by_cluster,
     summarize,
 )
+from rangemcl.localization.models import ScoringModel
 from rangemcl.mapping.meshmap import MeshMap
 from rangemcl.mcl import LocalizerSettings, ObservationSettings, build_localizer, se2_between
 from rangemcl.rangeimage import RangeImageGeometry
@@ -61,6 +63,27 @@ def test_allocation_and_kld_bound():
     assert sizes == sorted(sizes) and sizes[0] == 1 and 9000 < sizes[-1] < 13000
     p = np.array([[0.1, 0.1, 0.0], [0.2, 0.3, 0.01], [5.0, 0.0, 0.0], [0.1, 0.1, 3.0]])
     assert occupied_bins(p, 1.0, 10.0) == 3
+
+
+def test_held_poses_are_those_near_a_held_particle_in_place_and_yaw():
+    """Against a brute-force check on random clouds: within 3 m and 20 degrees of a held particle is
+    held, beyond 3 m * sqrt(2) or 20 * sqrt(2) degrees (the ball's reach either way) is not; a
+    reversed yaw at the same spot is a place not held (a street driven the other way)."""
+    rng = np.random.default_rng(0)
+    held = np.column_stack([rng.uniform(0, 100, (300, 2)), rng.uniform(-math.pi, math.pi, 300)])
+    poses = np.column_stack([rng.uniform(0, 100, (3000, 2)), rng.uniform(-math.pi, math.pi, 3000)])
+    got = held_poses(held, poses, 3.0, math.radians(20.0))
+    dxy = np.hypot(poses[:, None, 0] - held[None, :, 0], poses[:, None, 1] - held[None, :, 1])
+    dyaw = np.abs(np.angle(np.exp(1j * (poses[:, None, 2] - held[None, :, 2]))))
+    near = ((dxy <= 3.0) & (dyaw <= math.radians(20.0))).any(axis=1)
+    far = ~((dxy <= 3.0 * math.sqrt(2)) & (dyaw <= math.radians(20.0 * math.sqrt(2)) + 1e-9)).any(axis=1)
+    assert near.sum() > 20 and far.sum() > 1000
+    assert got[near].all() and not got[far].any()
+    spot = held[:1].copy()
+    assert held_poses(held[:1], spot, 3.0, math.radians(20.0)).tolist() == [True]
+    spot[0, 2] += math.pi
+    assert held_poses(held[:1], spot, 3.0, math.radians(20.0)).tolist() == [False]
+    assert held_poses(np.zeros((0, 3)), spot, 3.0, 0.3).tolist() == [False]
 
 
 def test_convergence_test_needs_margin_distance_and_a_compact_leader():
@@ -323,3 +346,62 @@ def test_over_a_map_within_a_budget_the_second_opinion_finds_a_place_whose_tiles
             assert k is None
     finally:
         view.close()
+
+
+class _ScriptedStreets(ScoringModel):
+    """An observation model with a known answer, so that the search's bookkeeping is what is tested:
+    particles at the true pose score 0, those at the same spot of the twin street ``delta`` nats less per
+    update (a look-alike that fits each scan a little worse), everything else far less."""
+
+    def __init__(self, delta: float):
+        self.delta = delta
+        self.truth = np.zeros(3)
+
+    def score(self, rays, particles, sensor_z):
+        def err(p0):
+            dxy = np.hypot(particles[:, 0] - p0[0], particles[:, 1] - p0[1])
+            dyaw = np.abs(np.angle(np.exp(1j * (particles[:, 2] - p0[2]))))
+            return dxy**2 + (5.0 * dyaw) ** 2
+
+        twin = self.truth + [0.0, 100.0, 0.0]
+        loglik = np.maximum(np.maximum(-err(self.truth), -self.delta - err(twin)), -12.0)
+        self.last_inliers = np.full(len(particles), 0.9)
+        return loglik, 1.0 - np.exp(loglik)
+
+
+@pytest.mark.parametrize("old", [False, True])
+def test_a_look_alike_refreshed_by_the_prior_every_update_does_not_block_the_decision(twin_streets, old):
+    """Two identical streets (the marker aside), a look-alike that fits every scan 0.1 nats worse than
+    the true street (a scripted observation; the place prior, the injections, the clusters and the test
+    are the filter's own; the prior's 6 best places per scan). Revision 7 injected the prior's fresh
+    particles into every place it ranks high, held or not, at 5 % of the weight: the look-alike was
+    topped up every update and held about 0.05 / places / (1 - e^-0.1) of the weight, so the leader's
+    margin stalled below the test's 6 nats (about 4-4.5 here). Now fresh particles go only to places
+    not held, at 0.1 % of the weight, so the look-alike's share falls by e^-0.1 per update and the test
+    decides, for the true street."""
+    caster, m = twin_streets
+    geo = RangeImageGeometry.for_spec(load_spec("vlp-16").with_columns(360))
+    path = np.column_stack([np.arange(0.0, 80.0, 1.0), np.zeros(80), np.zeros(80)])
+    s = twin_settings()
+    s.init.inject_top = 6
+    if old:
+        s.init.inject_weight, s.init.inject_held = 0.05, True
+    loc = build_localizer(m, s, seed=9, caster=caster)
+    model = _ScriptedStreets(0.1)
+    loc.scorer = model
+    loc.spread()
+    converged_at, margins = None, []
+    for k in range(len(path)):
+        model.truth = path[k]
+        delta = se2_between(path[k - 1], path[k]) if k else np.zeros(3)
+        info = loc.step(delta, scan_at(caster, geo, path[k]))
+        if info.converged_now:
+            converged_at = k
+            break
+        margins.append(loc.convergence_test.margin)
+    if old:
+        assert converged_at is None
+        assert 3.0 < max(margins[40:]) < 5.5, margins[40:]
+        return
+    assert converged_at is not None, margins
+    assert np.hypot(*(loc.estimate()[:2] - path[converged_at, :2])) < 1.0
