@@ -337,9 +337,7 @@ class LocalizerSettings:
         if not math.isfinite(m.gyro_bias_deg_s):
             raise InputError(f"{where}: motion.gyro_bias_deg_s must be finite, got {m.gyro_bias_deg_s}")
         for key in ("prior_share", "inject_share", "inject_below_share", "inject_weight"):
-            if getattr(self.init, key) is None and key == "inject_weight":
-                continue
-            if not 0 <= getattr(self.init, key) <= 1:
+            if getattr(self.init, key) is not None and not 0 <= getattr(self.init, key) <= 1:
                 raise InputError(f"{where}: init.{key} must be in [0, 1], got {getattr(self.init, key)}")
         if m.calibration not in ("estimator", "particles"):
             raise InputError(

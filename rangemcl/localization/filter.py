@@ -164,7 +164,7 @@ class MonteCarloLocalizer:
         inject_top: int = 30,
         inject_below_share: float = 1.0,
         inject_weight: float | None = None,
-        inject_held: bool = False,
+        inject_held: bool = True,
         # convergence
         convergence: str = "hypotheses",
         tiles: int = 1,

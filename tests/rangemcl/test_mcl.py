@@ -265,6 +265,12 @@ def test_settings_are_checked(world):
     s.particles.resample_neff_ratio = 1.5
     with pytest.raises(InputError, match="resample_neff_ratio"):
         s.check()
+    s = LocalizerSettings()
+    s.init.inject_weight = 1.5
+    with pytest.raises(InputError, match="inject_weight"):
+        s.check()
+    s.init.inject_weight = None  # the injected particles' count share
+    s.check()
     loc = build_localizer(m, LocalizerSettings(), caster=caster)
     with pytest.raises(InputError, match="no particles"):
         loc.step(np.zeros(3), None)
