@@ -6,12 +6,15 @@ error of the aligned yaw there.
     python tools/prior_rank.py --seq out/demo/test_drive --map out/demo/map
     python tools/prior_rank.py --seq SEQ --map MAP --every 5 --json prior_rank.json
     python tools/prior_rank.py --seq SEQ --map BIG_MAP --map-memory 700   # a map too large to hold whole
+    python tools/prior_rank.py --seq SEQ --map BIG_MAP --map-memory 700 --two-stage off   # one stage
 
 "The true place" is the best-matching cell within ``--radius`` (1.5 m: a 2 m grid has a cell centre
 within 1.42 m of any point) of the true sensor position; its rank counts the cells farther than
 ``--radius`` that match better. The prior is loaded from the map folder (or rendered there first, which
 is timed). Prints the rank distribution (share of scans with the true place first, in the best 10, 100,
-300 = the particles' candidates by default) and the yaw errors.
+300 = the particles' candidates by default) and the yaw errors. With ``--two-stage`` (automatic for
+priors of 50,000 cells and more) a true place left out of the shortlist ranks behind every shortlisted
+cell.
 """
 
 from __future__ import annotations
@@ -34,6 +37,12 @@ def run() -> None:
         "--map-memory",
         type=float,
         help="open the map within this many MB (a map too large to hold whole); default: as localize does",
+    )
+    ap.add_argument(
+        "--two-stage",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="match in two stages (coarse bins, then a shortlist; auto: for priors of 50,000 cells and more)",
     )
     args = ap.parse_args()
 
@@ -64,7 +73,7 @@ def run() -> None:
             pts = pts @ rotation_roll_pitch(*seq.imu_roll_pitch[i]).T
         prof, known = scan_profile(pts, height, prior.params)
         t1 = time.perf_counter()
-        m = prior.match(prof, known)
+        m = prior.match(prof, known, two_stage={"auto": None, "on": True, "off": False}[args.two_stage])
         match_s.append(time.perf_counter() - t1)
         d = np.hypot(prior.xy[:, 0] - truth[i, 0], prior.xy[:, 1] - truth[i, 1])
         near = d <= args.radius
@@ -78,6 +87,7 @@ def run() -> None:
         "sequence": args.seq,
         "map": args.map,
         "cells": len(prior.xy),
+        "two_stage": args.two_stage,
         "prior": loc.prior_source,
         "prior_ready_s": ready_s,
         "scans": len(r),

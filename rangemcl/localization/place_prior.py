@@ -73,6 +73,9 @@ class PriorParams:
 
 
 _MATCH_CHUNK = 512  # cells per pass of PlacePrior.match: about 9 MB of temporaries (4096: 70 MB, and slower)
+TWO_STAGE_MIN_CELLS = 50_000  # priors this large are matched in two stages (PlacePrior.match): a city's
+COARSE_FACTOR = 6  # ... first on bins this many times coarser (6 degrees) ...
+SHORTLIST = 5_000  # ... then these best cells on the full bins
 
 
 def _encode(x: np.ndarray) -> np.ndarray:
@@ -139,11 +142,14 @@ class PlacePrior:
         # the encoded value of each quantised range: a profile's spectra are computed from these at match
         # time, a chunk of cells at a time (kept whole they took 280 MB for town_large's 24,000 cells)
         self._table = _encode(np.arange(256, dtype=np.float64) * params.quant_m)
+        self._coarse: np.ndarray | None = None  # the two-stage match's coarse profiles, made on first use
 
     @property
     def nbytes(self) -> int:
-        """Bytes held in memory (the cell centres and the profiles)."""
-        return int(self.xy.nbytes + self.profiles.nbytes)
+        """Bytes held in memory (the cell centres and the profiles; for priors matched in two stages the
+        coarse profiles too, made at the first match)."""
+        coarse = self.profiles.nbytes // COARSE_FACTOR if len(self.xy) >= TWO_STAGE_MIN_CELLS else 0
+        return int(self.xy.nbytes + self.profiles.nbytes + coarse)
 
     # --- building -----------------------------------------------------------------------------------------
 
@@ -187,8 +193,13 @@ class PlacePrior:
 
     # --- matching ----------------------------------------------------------------------------------------
 
-    def match(self, profile: np.ndarray, known: np.ndarray) -> PriorMatch:
-        """Compare a scan's profile (:func:`scan_profile`) with every cell at every yaw."""
+    def match(self, profile: np.ndarray, known: np.ndarray, *, two_stage: bool | None = None) -> PriorMatch:
+        """Compare a scan's profile (:func:`scan_profile`) with every cell at every yaw.
+
+        ``two_stage`` (default: for priors of at least ``TWO_STAGE_MIN_CELLS`` cells, a city's) first
+        compares every cell on ``COARSE_FACTOR``-times coarser azimuth bins (each the nearest of its bins:
+        the same kind of profile), then only the ``SHORTLIST`` best of them on the full bins; the other
+        cells get an infinite cost. The shortlisted cells' costs and yaws are exactly the one-stage ones."""
         B = self.params.bins
         prof = np.asarray(profile, np.float64).reshape(2, B)
         kn = np.asarray(known, bool).reshape(2, B)
@@ -196,16 +207,44 @@ class PlacePrior:
         q = _encode(prof[band])
         m = kn[band].astype(np.float64)
         n = m.sum()
+        K = len(self.xy)
         if n < 1:
-            return PriorMatch(np.full(len(self.xy), np.inf), np.zeros(len(self.xy)), 0, band)
+            return PriorMatch(np.full(K, np.inf), np.zeros(K), 0, band)
+        if two_stage is None:
+            two_stage = K >= TWO_STAGE_MIN_CELLS
+        F = COARSE_FACTOR
+        if not two_stage or B % F or K <= SHORTLIST:
+            best, yaw = self._best_shifts(self.profiles[:, band], q, m)
+            return PriorMatch(np.maximum(best, 0.0), wrap_angle(yaw), int(n), band)
+        coarse_q = _encode(prof[band].reshape(-1, F).min(axis=1))
+        coarse_m = kn[band].reshape(-1, F).any(axis=1).astype(np.float64)
+        rough, _ = self._best_shifts(self._coarse_profiles()[:, band], coarse_q, coarse_m)
+        keep = np.sort(np.argpartition(rough, SHORTLIST - 1)[:SHORTLIST])
+        best, yaw = np.full(K, np.inf), np.zeros(K)
+        best[keep], yaw[keep] = self._best_shifts(self.profiles[keep, band], q, m)
+        return PriorMatch(np.maximum(best, 0.0), wrap_angle(yaw), int(n), band)
+
+    def _coarse_profiles(self) -> np.ndarray:
+        """``(K, 2, B / COARSE_FACTOR)`` uint8: each coarse bin the nearest of its bins (made once)."""
+        if self._coarse is None:
+            K, _, B = self.profiles.shape
+            self._coarse = self.profiles.reshape(K, 2, B // COARSE_FACTOR, COARSE_FACTOR).min(axis=3)
+        return self._coarse
+
+    def _best_shifts(self, cells: np.ndarray, q: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each cell's least masked mean squared difference over all circular shifts, and its yaw.
+
+        ``cells`` ``(k, B)`` quantised profiles, ``q`` the scan's encoded profile, ``m`` its mask."""
+        B = len(q)
+        n = m.sum()
         # cost(s) = Σ_i m_i (q_i − c_{i+s})² / n, each sum a circular correlation over i
         A1 = np.conj(np.fft.rfft(m * q))
         A0 = np.conj(np.fft.rfft(m))
         qq = float(np.sum(m * q * q))
-        K = len(self.xy)
+        K = len(cells)
         best, yaw = np.empty(K), np.empty(K)
         for lo in range(0, K, _MATCH_CHUNK):  # bounded temporaries: (chunk, B) arrays, not (K, B)
-            enc = self._table[self.profiles[lo : lo + _MATCH_CHUNK, band]]  # (k, B)
+            enc = self._table[cells[lo : lo + _MATCH_CHUNK]]  # (k, B)
             cross = np.fft.irfft(A1[None, :] * np.fft.rfft(enc, axis=1), n=B, axis=1)  # Σ m q c_{i+s}
             sq = np.fft.irfft(A0[None, :] * np.fft.rfft(enc * enc, axis=1), n=B, axis=1)  # Σ m c²_{i+s}
             cost = (qq - 2.0 * cross + sq) / n  # (k, B)
@@ -217,7 +256,7 @@ class PlacePrior:
             frac = np.where(den > 1e-12, 0.5 * (cm - cp) / np.where(den > 1e-12, den, 1.0), 0.0)
             best[lo : lo + len(cost)] = c0
             yaw[lo : lo + len(cost)] = (s + np.clip(frac, -0.5, 0.5)) * (2 * np.pi / B)
-        return PriorMatch(np.maximum(best, 0.0), wrap_angle(yaw), int(n), band)
+        return best, yaw
 
     def candidates(
         self, points: np.ndarray, sensor_height_m: float, top: int

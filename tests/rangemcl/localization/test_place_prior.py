@@ -114,6 +114,36 @@ def test_true_cell_ranks_first_in_a_town_of_distinct_places(town):
     assert max(ranks) <= 0.01 * len(prior.xy), ranks
 
 
+def test_the_two_stage_match_keeps_the_true_cell_and_the_exact_costs_of_its_shortlist(town, monkeypatch):
+    """A city's prior is matched in two stages (6-degree bins for every cell, then the shortlist on the
+    full bins): forced here with a shortlist of 5 % of the synthetic town's cells, the shortlisted cells
+    carry exactly the one-stage costs and yaws, the others an infinite cost, and the true cell is still
+    first for (nearly) every scan."""
+    from rangemcl.localization import place_prior as pp
+
+    t, caster, _m, prior = town
+    monkeypatch.setattr(pp, "SHORTLIST", max(10, len(prior.xy) // 20))
+    rng = np.random.default_rng(3)
+    first = 0
+    for sensor in ("vlp-16", "hdl-64e", "mq-8"):
+        for k in rng.choice(len(prior.xy), 6, replace=False):
+            x, y = prior.xy[k]
+            pts = scan(t, caster, x, y, rng.uniform(-math.pi, math.pi), sensor)
+            prof, known = scan_profile(pts, HEIGHT, prior.params)
+            one = prior.match(prof, known, two_stage=False)
+            two = prior.match(prof, known, two_stage=True)
+            short = np.isfinite(two.cost)
+            assert short.sum() == pp.SHORTLIST
+            np.testing.assert_array_equal(two.cost[short], one.cost[short])
+            np.testing.assert_array_equal(two.yaw[short], one.yaw[short])
+            first += int(np.argmin(two.cost) == k)
+    assert first >= 0.85 * 18, first
+    assert prior._coarse.shape == (len(prior.xy), 2, prior.params.bins // pp.COARSE_FACTOR)
+    # each coarse bin is the nearest of its fine bins
+    fine = prior.profiles.reshape(len(prior.xy), 2, -1, pp.COARSE_FACTOR)
+    np.testing.assert_array_equal(prior._coarse, fine.min(axis=3))
+
+
 def test_profile_of_a_scan_keeps_only_the_height_bands_and_marks_empty_bins():
     p = PriorParams(bins=4)
     pts = np.array(
