@@ -162,7 +162,7 @@ class MonteCarloLocalizer:
         prior_yaw_sigma_deg: float = 2.0,
         inject_share: float = 0.05,
         inject_top: int = 30,
-        inject_below_share: float = 1.0,
+        inject_below_share: float = 0.9,
         inject_weight: float | None = None,
         inject_held: bool = True,
         # convergence

@@ -369,25 +369,27 @@ class _ScriptedStreets(ScoringModel):
         return loglik, 1.0 - np.exp(loglik)
 
 
-@pytest.mark.parametrize("old", [False, True])
-def test_a_look_alike_refreshed_by_the_prior_every_update_caps_the_margin_unless_held_places_are_left_out(
-    twin_streets, old
+@pytest.mark.parametrize("search", ["revision 7", "default", "no cap"])
+def test_a_look_alike_refreshed_by_the_prior_every_update_caps_the_margin_until_the_injection_stops(
+    twin_streets, search
 ):
     """Two identical streets (the marker aside), a look-alike that fits every scan 0.1 nats worse than
     the true street (a scripted observation; the place prior, the injections, the clusters and the test
-    are the filter's own; the prior's 6 best places per scan). The default injects the prior's fresh
-    particles into every place it ranks high, held or not, at 5 % of the weight: the look-alike is
-    topped up every update and holds about 0.05 / places / (1 - e^-0.1) of the weight, so the leader's
-    margin stalls below the test's 6 nats (about 4-4.5 here). With configs/search_no_cap.yaml fresh
-    particles go only to places not held, at 0.1 % of the weight, so the look-alike's share falls by
-    e^-0.1 per update and the test decides, for the true street. (The default keeps the cap as a brake:
-    README, issue 13.)"""
+    are the filter's own; the prior's 6 best places per scan). Revision 7 injected the prior's fresh
+    particles into every place it ranks high, held or not, at 5 % of the weight, at every update: the
+    look-alike was topped up every update and held about 0.05 / places / (1 - e^-0.1) of the weight, so
+    the leader's margin stalled below the test's 6 nats (about 4-4.5 here). The default (revision 8)
+    stops the injection while a hypothesis holds 90 % of the weight, and configs/search_no_cap.yaml
+    injects 0.1 % of the weight and only where the search holds nothing: either way the look-alike's
+    share then falls by e^-0.1 per update and the test decides, for the true street."""
     caster, m = twin_streets
     geo = RangeImageGeometry.for_spec(load_spec("vlp-16").with_columns(360))
     path = np.column_stack([np.arange(0.0, 80.0, 1.0), np.zeros(80), np.zeros(80)])
     s = twin_settings()
     s.init.inject_top = 6
-    if not old:  # configs/search_no_cap.yaml
+    if search == "revision 7":
+        s.init.inject_below_share = 1.0
+    elif search == "no cap":
         s.init.inject_weight, s.init.inject_held = 0.001, False
     loc = build_localizer(m, s, seed=9, caster=caster)
     model = _ScriptedStreets(0.1)
@@ -402,7 +404,7 @@ def test_a_look_alike_refreshed_by_the_prior_every_update_caps_the_margin_unless
             converged_at = k
             break
         margins.append(loc.convergence_test.margin)
-    if old:
+    if search == "revision 7":
         assert converged_at is None
         assert 3.0 < max(margins[40:]) < 5.5, margins[40:]
         return
