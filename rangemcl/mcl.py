@@ -569,7 +569,7 @@ def build_localizer(
         inject_share=i.inject_share,
         inject_top=i.inject_top,
         inject_below_share=i.inject_below_share,
-        inject_weight=i.inject_share if i.inject_weight is None else i.inject_weight,
+        inject_weight=i.inject_weight,
         inject_held=i.inject_held,
         convergence=c.method,
         tiles=c.tiles,
