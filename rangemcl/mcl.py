@@ -102,6 +102,10 @@ class ObservationSettings:
     # ground_share of the rays from the road (points within 0.5 m of the sensor's ground), the rest from
     # what stands on it, each part evenly over the elevation bands
     ground_share: float = 0.2  # ray_sampling structure: the road's share of the rays
+    tall_share: float = 0.6  # ... and of the rest (what stands on the road), the share of the points at
+    # least tall_m above the ground: facades above the parked cars, which change between drives (0: all
+    # structure alike, revision 8's rule)
+    tall_m: float = 2.0
     margin_m: float = 2.0  # rays end at measured range + margin; a miss counts as the margin
     cap_m: float | None = 1.0  # residual cap (the robust variant); None: the paper's plain mean
     cap_beyond_m: float | None = 0.5  # cost of a ray measured more than cap_m longer than the map's
@@ -377,6 +381,10 @@ class LocalizerSettings:
             )
         if not 0 <= o.ground_share <= 1:
             raise InputError(f"{where}: observation.ground_share must be in [0, 1], got {o.ground_share}")
+        if not 0 <= o.tall_share <= 1:
+            raise InputError(f"{where}: observation.tall_share must be in [0, 1], got {o.tall_share}")
+        if not o.tall_m > 0:
+            raise InputError(f"{where}: observation.tall_m must be > 0, got {o.tall_m}")
         if o.min_range_m >= o.max_range_m:
             raise InputError(f"{where}: observation.min_range_m must be below observation.max_range_m")
 
@@ -393,6 +401,8 @@ def ray_selector(settings: ObservationSettings):
         rays=o.rays,
         sampling=o.ray_sampling,
         ground_share=o.ground_share,
+        tall_share=o.tall_share,
+        tall_m=o.tall_m,
         min_range_m=o.min_range_m,
         max_range_m=o.max_range_m,
         deskew=o.deskew,

@@ -538,6 +538,11 @@ CASES: list[tuple[str, list[str], dict]] = [
     ),
     (
         LOC + " --config " + CFG,
+        ["observation.tall_share", "[0, 1]"],
+        {"c.yaml": "observation:\n  tall_share: -0.5\n"},
+    ),
+    (
+        LOC + " --config " + CFG,
         ["observation.ray_sampling", "diagonal"],
         {"c.yaml": "observation:\n  ray_sampling: diagonal\n"},
     ),

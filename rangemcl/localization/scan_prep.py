@@ -6,7 +6,13 @@ Ray selection (``sampling``): ``points`` draws evenly over the valid points; ``e
 elevation bands (a sensor whose beams crowd the road near the car still sends rays farther and higher);
 ``structure`` gives the road (points within ``STRUCTURE_M`` of the sensor's ground) at most
 ``ground_share`` of the rays and what stands on it the rest, each part evenly over the elevation bands:
-500 rays drawn evenly over an HDL-64E's points are mostly road, which fits almost anywhere.
+500 rays drawn evenly over an HDL-64E's points are mostly road, which fits almost anywhere. Of what stands
+on the road, ``tall_share`` goes to points at least ``tall_m`` above the ground (facades above the parked
+cars) and the rest to the points below: a sensor whose beams point down (an HDL-64E: most of its 2° bands
+meet structure only within 10-15 m of the car) otherwise spends most of its structure rays on parked cars,
+which differ between the mapping drive and today; measured on a town_large drive, an HDL-64E's true pose
+then scored worse than a look-alike street for 15 updates beside a row of cars the map lacks (README,
+issue 13, revision 9). A structure part without points gives its share to the other (the road keeps its own).
 """
 
 from __future__ import annotations
@@ -33,6 +39,42 @@ class ScanRays:
     structure: np.ndarray | None = None  # (R,) bool: the point lies STRUCTURE_M above the ground
 
 
+def _band_weights(
+    p: np.ndarray,
+    r: np.ndarray,
+    sampling: str,
+    ground_share: float,
+    tall_share: float,
+    tall_m: float,
+    sensor_height_m: float,
+) -> np.ndarray:
+    """Each point's probability of being drawn: the parts (tall structure, low structure, road; one part
+    for ``elevation``) get their shares, a part's share is split evenly over its elevation bands, a band's
+    share evenly over its points. A structure part without points gives its share to the other."""
+    key = np.floor(np.degrees(np.arcsin(p[:, 2] / r)) / ELEVATION_BAND_DEG).astype(np.int64)
+    part = np.zeros(len(p), np.int64)
+    share = np.array([1.0, 0.0, 0.0])
+    if sampling == "structure":
+        # height above the sensor's ground (levelled enough: a car's roll and pitch are small)
+        h = p[:, 2] + sensor_height_m
+        tall = (h >= tall_m) & (tall_share > 0)
+        part = np.where(h < STRUCTURE_M, 2, np.where(tall, 0, 1))  # 0 tall, 1 low structure, 2 road
+        has = np.bincount(part, minlength=3) > 0
+        t = tall_share if has[0] and has[1] else float(has[0])  # a structure part alone takes its share
+        g = ground_share if has[2] and (has[0] or has[1]) else float(has[2])  # ... and the road alike
+        share = np.array([(1.0 - g) * t, (1.0 - g) * (1.0 - t), g])
+        if share.sum() <= 0:  # only parts without a share hold points: draw them alike
+            share = has.astype(np.float64)
+        share = share / share.sum()
+    _, inverse, counts = np.unique(key * 3 + part, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    group_part = np.zeros(len(counts), np.int64)
+    group_part[inverse] = part
+    groups_in_part = np.bincount(group_part, minlength=3)
+    weight = share[part] / np.maximum(groups_in_part[part], 1) / counts[inverse]
+    return weight / weight.sum()
+
+
 def select_rays(
     points: np.ndarray,
     rng: np.random.Generator,
@@ -40,6 +82,8 @@ def select_rays(
     rays: int = 500,
     sampling: str = "structure",
     ground_share: float = 0.2,
+    tall_share: float = 0.0,
+    tall_m: float = 2.0,
     min_range_m: float = 2.0,
     max_range_m: float = 40.0,
     deskew: bool = True,
@@ -67,23 +111,13 @@ def select_rays(
     if len(idx) > rays:
         weight = None
         if sampling in ("elevation", "structure"):
-            key = np.floor(np.degrees(np.arcsin(p[idx, 2] / r[idx])) / ELEVATION_BAND_DEG).astype(np.int64)
-            part = np.zeros(len(idx), np.int64)
-            part_share = np.array([1.0, 0.0])
-            if sampling == "structure":
-                # height above the sensor's ground (levelled enough: a car's roll and pitch are small)
-                part = (p[idx, 2] + sensor_height_m < STRUCTURE_M).astype(np.int64)  # 1: road
-                if 0 < part.sum() < len(part):
-                    part_share = np.array([1.0 - ground_share, ground_share])
-                else:
-                    part[:] = 0
-            _, inverse, counts = np.unique(key * 2 + part, return_inverse=True, return_counts=True)
-            group_part = np.zeros(len(counts), np.int64)
-            group_part[inverse] = part
-            groups_in_part = np.bincount(group_part, minlength=2)
-            # each part its share, split evenly over its elevation bands, each band's points alike
-            weight = part_share[part] / groups_in_part[part] / counts[inverse]
-            weight /= weight.sum()
+            weight = _band_weights(
+                p[idx], r[idx], sampling, ground_share, tall_share, tall_m, sensor_height_m
+            )
+            drawable = int(np.count_nonzero(weight))
+            if drawable < rays:  # a part with no share holds the rest: they fill the draw, least likely
+                weight = np.where(weight > 0, weight, weight[weight > 0].min() * 1e-6)
+                weight /= weight.sum()
         # sorted: the rays keep sweep order, which keeps them coherent in memory
         idx = np.sort(rng.choice(idx, rays, replace=False, p=weight))
     q = p[idx]

@@ -426,3 +426,45 @@ def test_structure_sampling_caps_the_roads_share_of_the_rays():
     # a scan of road alone still gives rays
     only_road = prepare_rays(road, ObservationSettings(rays=100, ray_sampling="structure"), rng)
     assert len(only_road.ranges) == 100
+
+
+def test_structure_sampling_gives_the_tall_structure_its_share():
+    """Revision 9: of the structure rays, tall_share from points at least tall_m above the ground (the
+    facades over the parked cars), however many more points the cars near the sensor return."""
+    rng = np.random.default_rng(1)
+
+    def band(n, x, z_lo, z_hi):  # points above the sensor's ground (z in the sensor frame: h - HEIGHT)
+        z = rng.uniform(z_lo, z_hi, n) - HEIGHT
+        return np.column_stack([rng.uniform(*x, n), rng.uniform(-6, 6, n), z])
+
+    road = np.column_stack([rng.uniform(3, 20, 6000), rng.uniform(-5, 5, 6000), np.full(6000, -HEIGHT)])
+    # parked cars near the sensor fill most elevation bands (the downward beams of an HDL-64E); the
+    # facade above them only the few bands around the horizon
+    cars = band(8000, (3.0, 8.0), 0.6, 1.5)
+    facade = band(3000, (25.0, 25.0), 2.2, 3.5)
+    pts = np.vstack([road, cars, facade])
+
+    def shares(**kw):
+        r = prepare_rays(pts, ObservationSettings(rays=500, **kw), rng, sensor_height_m=HEIGHT)
+        h = r.directions[:, 2] * r.ranges + HEIGHT
+        return len(r.ranges), float(np.mean(h >= 2.0)), float(np.mean(h < 0.5))
+
+    n, tall, road_share = shares(tall_share=0.6)
+    assert n == 500 and abs(tall - 0.8 * 0.6) < 0.06 and abs(road_share - 0.2) < 0.05
+    _, tall_rev8, _ = shares(tall_share=0.0)  # all structure alike, band by band
+    assert tall_rev8 < tall - 0.1
+    # no tall points (a sensor whose beams all point down): the low structure keeps the structure share
+    # (revision 8's draw exactly)
+    low_only = np.vstack([road, cars])
+    a, b = (
+        prepare_rays(
+            low_only, ObservationSettings(tall_share=t), np.random.default_rng(5), sensor_height_m=HEIGHT
+        )
+        for t in (0.6, 0.0)
+    )
+    assert np.array_equal(a.ranges, b.ranges) and np.array_equal(a.directions, b.directions)
+    # all the rays asked of a part with fewer points: the draw is filled from the others
+    only_tall = ObservationSettings(rays=500, tall_share=1.0, ground_share=0.0)
+    r = prepare_rays(np.vstack([road, cars, facade[:100]]), only_tall, rng, sensor_height_m=HEIGHT)
+    h = r.directions[:, 2] * r.ranges + HEIGHT
+    assert len(r.ranges) == 500 and int(np.sum(h >= 2.0)) == 100
