@@ -16,7 +16,8 @@
 #   sweeps    tools/odometry_sweep.py, tracking and after global convergence, OS1-64 and HDL-64E drives
 #   sensors   the sensors suite, 5 presets x 10 starts x 100 frames, 10,000 particles
 #   particles the particles suite, range model, 1,000/5,000/10,000 particles, 10 starts
-#   paper     both suites again with configs/paper.yaml
+#   paper     both suites again with configs/paper.yaml (paper-sensors, paper-particles: one of them);
+#             each runs right after the suite it repeats
 set -euo pipefail
 REPO=$(cd "$(dirname "$0")/.." && pwd)
 DATA=${1:-/work/data}
@@ -84,24 +85,23 @@ if want sweeps; then
   done
 fi
 
+# the paper's pipeline right after each suite, so that each side-by-side table is whole as early as can be
 if want sensors && ! done_ sensors; then
   "${SIMBED[@]}" trials sensors --out suites/large "${SUITE[@]}" --sensors $SENSORS
   stamp sensors
+fi
+if { want paper || want paper-sensors; } && ! done_ paper-sensors; then
+  "${SIMBED[@]}" trials sensors --out suites/large "${SUITE[@]}" --sensors $SENSORS \
+    --config src/configs/paper.yaml
+  stamp paper-sensors
 fi
 if want particles && ! done_ particles; then
   "${SIMBED[@]}" trials particles --out suites/large "${SUITE[@]}" --models range --counts 1000,5000,10000
   stamp particles
 fi
-if want paper; then
-  if ! done_ paper-sensors; then
-    "${SIMBED[@]}" trials sensors --out suites/large "${SUITE[@]}" --sensors $SENSORS \
-      --config src/configs/paper.yaml
-    stamp paper-sensors
-  fi
-  if ! done_ paper-particles; then
-    "${SIMBED[@]}" trials particles --out suites/large "${SUITE[@]}" --models range \
-      --counts 1000,5000,10000 --config src/configs/paper.yaml
-    stamp paper-particles
-  fi
+if { want paper || want paper-particles; } && ! done_ paper-particles; then
+  "${SIMBED[@]}" trials particles --out suites/large "${SUITE[@]}" --models range \
+    --counts 1000,5000,10000 --config src/configs/paper.yaml
+  stamp paper-particles
 fi
 echo "town_large_suites: finished $(date -u +%FT%TZ)"
