@@ -7,6 +7,7 @@ error of the aligned yaw there.
     python tools/prior_rank.py --seq SEQ --map MAP --every 5 --json prior_rank.json
     python tools/prior_rank.py --seq SEQ --map BIG_MAP --map-memory 700   # a map too large to hold whole
     python tools/prior_rank.py --seq SEQ --map BIG_MAP --map-memory 700 --two-stage off   # one stage
+    python tools/prior_rank.py --seq SEQ --map MAP --sequence 4 --spacing 3   # with the last 4 scans
 
 "The true place" is the best-matching cell within ``--radius`` (1.5 m: a 2 m grid has a cell centre
 within 1.42 m of any point) of the true sensor position; its rank counts the cells farther than
@@ -14,7 +15,10 @@ within 1.42 m of any point) of the true sensor position; its rank counts the cel
 is timed). Prints the rank distribution (share of scans with the true place first, in the best 10, 100,
 300 = the particles' candidates by default) and the yaw errors. With ``--two-stage`` (automatic for
 priors of 50,000 cells and more) a true place left out of the shortlist ranks behind every shortlisted
-cell.
+cell. With ``--sequence N`` each cell is ranked by its mean cost over today's scan and the N scans
+taken every ``--spacing`` metres of odometry before it, each scored where the drive's odometry puts it
+behind the cell (:func:`rangemcl.localization.place_prior.sequence_costs`); the one-scan ranks are
+printed beside.
 """
 
 from __future__ import annotations
@@ -44,16 +48,18 @@ def run() -> None:
         default="auto",
         help="match in two stages (coarse bins, then a shortlist; auto: for priors of 50,000 cells and more)",
     )
+    ap.add_argument("--sequence", type=int, default=0, help="also rank over this many past scans")
+    ap.add_argument("--spacing", type=float, default=3.0, help="metres of odometry between those scans")
     args = ap.parse_args()
 
     from rangemcl.dataset import load_sequence
     from rangemcl.errors import InputError
     from rangemcl.evaluate import xyyaw_of
-    from rangemcl.localization.place_prior import circular_distance_deg, scan_profile
-    from rangemcl.localize import _sensor_height
+    from rangemcl.localization.place_prior import circular_distance_deg, scan_profile, sequence_costs
+    from rangemcl.localize import _sensor_height, odometry_xyyaw
     from rangemcl.mapping.view import open_map
     from rangemcl.mcl import LocalizerSettings, build_localizer
-    from rangemcl.se2 import rotation_roll_pitch
+    from rangemcl.se2 import rotation_roll_pitch, se2_between
 
     seq = load_sequence(args.seq)
     mesh_map, caster = open_map(args.map, args.map_memory)
@@ -66,22 +72,40 @@ def run() -> None:
     prior = loc.place_prior()
     ready_s = time.perf_counter() - t0
     truth = xyyaw_of(seq.poses @ seq.calib_Tr)
-    ranks, yaw_err, match_s = [], [], []
-    for i in range(0, len(seq), args.every):
+    odo, _source = odometry_xyyaw(seq, False)
+    ranks, seq_ranks, yaw_err, match_s = [], [], [], []
+    history: list = []  # (the scan's match, odometry pose) every --spacing metres
+
+    def remember(i: int, m) -> None:
+        nonlocal history
+        moved = not history or np.hypot(*(odo[i, :2] - history[-1][1][:2])) >= args.spacing
+        if args.sequence > 0 and moved:
+            history = [*history, (m, odo[i])][-args.sequence :]
+
+    step = args.every if args.sequence <= 0 else 1
+    for i in range(0, len(seq), step):
         pts = np.asarray(seq.scan(i), np.float64)
         if seq.imu_roll_pitch is not None:
             pts = pts @ rotation_roll_pitch(*seq.imu_roll_pitch[i]).T
         prof, known = scan_profile(pts, height, prior.params)
         t1 = time.perf_counter()
         m = prior.match(prof, known, two_stage={"auto": None, "on": True, "off": False}[args.two_stage])
+        if args.sequence > 0 and i % args.every:  # only kept for the sequence
+            remember(i, m)
+            continue
         match_s.append(time.perf_counter() - t1)
         d = np.hypot(prior.xy[:, 0] - truth[i, 0], prior.xy[:, 1] - truth[i, 1])
         near = d <= args.radius
-        if not near.any():
-            continue  # off the drivable area of the map
-        j = np.flatnonzero(near)[np.argmin(m.cost[near])]
-        ranks.append(int((m.cost[~near] < m.cost[j]).sum()))
-        yaw_err.append(float(circular_distance_deg(m.yaw[j], truth[i, 2])))
+        if near.any():  # else off the drivable area of the map
+            j = np.flatnonzero(near)[np.argmin(m.cost[near])]
+            ranks.append(int((m.cost[~near] < m.cost[j]).sum()))
+            yaw_err.append(float(circular_distance_deg(m.yaw[j], truth[i, 2])))
+            if args.sequence > 0 and len(history) == args.sequence:
+                past = [(pm, se2_between(odo[i], o)) for pm, o in history]
+                c = sequence_costs(prior, m, past)
+                j = np.flatnonzero(near)[np.argmin(c[near])]
+                seq_ranks.append(int((c[~near] < c[j]).sum()))
+        remember(i, m)
     r = np.array(ranks)
     out = {
         "sequence": args.seq,
@@ -101,6 +125,18 @@ def run() -> None:
         "yaw_error_p90_deg": float(np.quantile(yaw_err, 0.9)),
         "match_median_s": float(np.median(match_s)),
     }
+    if seq_ranks:
+        q = np.array(seq_ranks)
+        out["sequence"] = {
+            "scans": args.sequence,
+            "spacing_m": args.spacing,
+            "ranked": len(q),
+            "share_first": float(np.mean(q == 0)),
+            "share_top10": float(np.mean(q < 10)),
+            "share_top100": float(np.mean(q < 100)),
+            "share_top300": float(np.mean(q < 300)),
+            "rank_median": float(np.median(q)),
+        }
     print(
         f"{out['scans']} scans, {out['cells']:,} cells (prior {out['prior']} in {ready_s:.1f} s): true place "
         f"first in {100 * out['share_first']:.0f} %, in the best 10 in {100 * out['share_top10']:.0f} %, "
@@ -109,6 +145,14 @@ def run() -> None:
         f"{out['yaw_error_median_deg']:.1f} deg, p90 {out['yaw_error_p90_deg']:.1f} deg; "
         f"match {1000 * out['match_median_s']:.0f} ms per scan"
     )
+    if seq_ranks:
+        q = out["sequence"]
+        print(
+            f"with the last {args.sequence} scans every {args.spacing:g} m ({q['ranked']} scans with a full "
+            f"history): true place first in {100 * q['share_first']:.0f} %, in the best 10 in "
+            f"{100 * q['share_top10']:.0f} %, 100: {100 * q['share_top100']:.0f} %, 300: "
+            f"{100 * q['share_top300']:.0f} %; rank median {q['rank_median']:.0f}"
+        )
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(out, fh, indent=2)

@@ -143,6 +143,7 @@ class PlacePrior:
         # time, a chunk of cells at a time (kept whole they took 280 MB for town_large's 24,000 cells)
         self._table = _encode(np.arange(256, dtype=np.float64) * params.quant_m)
         self._coarse: np.ndarray | None = None  # the two-stage match's coarse profiles, made on first use
+        self._tree = None  # a k-d tree of the cell centres (cost_at), made on first use
 
     @property
     def nbytes(self) -> int:
@@ -257,6 +258,36 @@ class PlacePrior:
             best[lo : lo + len(cost)] = c0
             yaw[lo : lo + len(cost)] = (s + np.clip(frac, -0.5, 0.5)) * (2 * np.pi / B)
         return best, yaw
+
+    def cost_at(self, profile: np.ndarray, known: np.ndarray, xy: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+        """The match's cost of a scan's profile at given poses, not at each cell's best yaw: each pose
+        ``(xy (K, 2), yaw (K,))`` compared at the cell nearest to it (a cell farther than a grid step
+        costs ``inf``) and at the shift of its yaw (rounded to a bin). Used to score a past scan at the
+        poses where the odometry puts it behind today's candidates (:func:`sequence_costs`)."""
+        B = self.params.bins
+        prof = np.asarray(profile, np.float64).reshape(2, B)
+        kn = np.asarray(known, bool).reshape(2, B)
+        band = 1 if kn[1].sum() >= self.params.min_known_share * B else 0
+        m = kn[band]
+        n = int(m.sum())
+        xy = np.asarray(xy, np.float64).reshape(-1, 2)
+        if n < 1:
+            return np.full(len(xy), np.inf)
+        cell, near = self._nearest_cell(xy)
+        shift = np.rint(np.asarray(yaw, np.float64) / (2 * np.pi / B)).astype(np.int64)
+        idx = (np.flatnonzero(m)[None, :] + shift[:, None]) % B  # (K, n): the cell bin of each known bin
+        enc = self._table[self.profiles[cell[:, None], band, idx]]
+        cost = np.mean((enc - _encode(prof[band][m])[None, :]) ** 2, axis=1)
+        return np.where(near, cost, np.inf)
+
+    def _nearest_cell(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The nearest cell of each point and whether it lies within one grid step."""
+        if self._tree is None:
+            from scipy.spatial import cKDTree
+
+            self._tree = cKDTree(self.xy)
+        d, cell = self._tree.query(xy, k=1)
+        return cell, d <= self.params.cell_m
 
     def candidates(
         self, points: np.ndarray, sensor_height_m: float, top: int
@@ -380,3 +411,39 @@ def load_or_build(
 def circular_distance_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Absolute angle difference in degrees, wrapped."""
     return np.degrees(np.abs(wrap_angle(np.asarray(a) - np.asarray(b))))
+
+
+def sequence_costs(
+    prior: PlacePrior,
+    current: PriorMatch,
+    past: list,
+    radius_m: float | None = None,
+    yaw_tol_deg: float = 10.0,
+) -> np.ndarray:
+    """Each cell's cost over a short sequence of scans: today's match and the matches of past scans
+    (``past``: ``(PriorMatch, rel)`` with ``rel`` the past sensor pose in today's sensor frame, from the
+    odometry). For each cell (at its best yaw today) the pose where the odometry puts each past scan is
+    found, and the past scan's match counts with its best cell within ``radius_m`` (default 1.5 grid
+    steps) of that pose whose aligned yaw lies within ``yaw_tol_deg`` of it (none: the past match's
+    worst cost). The mean over the scans. A look-alike that fits one scan rarely fits the scans of the
+    last metres where the odometry puts them (sequence matching, as SeqSLAM does for images)."""
+    from rangemcl.se2 import se2_compose
+
+    radius = 1.5 * prior.params.cell_m if radius_m is None else float(radius_m)
+    tol = np.radians(yaw_tol_deg)
+    poses = np.column_stack([prior.xy, current.yaw])
+    K = len(poses)
+    total = np.array(current.cost, np.float64)
+    for match, rel in past:
+        at = se2_compose(poses, np.broadcast_to(np.asarray(rel, np.float64), poses.shape))
+        if prior._tree is None:
+            prior._nearest_cell(prior.xy[:1])  # makes the tree
+        _d, idx = prior._tree.query(at[:, :2], k=9, distance_upper_bound=radius)
+        finite = np.isfinite(match.cost)
+        worst = float(match.cost[finite].max()) if finite.any() else 0.0
+        cost = np.append(np.where(finite, match.cost, worst), worst)  # index K: no cell there
+        yaw = np.append(match.yaw, 0.0)
+        dyaw = np.abs(wrap_angle(yaw[idx] - at[:, 2:3]))
+        c = np.where((idx < K) & (dyaw <= tol), cost[idx], worst)
+        total = total + c.min(axis=1)
+    return total / (1 + len(past))

@@ -19,6 +19,7 @@ from rangemcl.localization.place_prior import (
     grid_cells,
     load_or_build,
     scan_profile,
+    sequence_costs,
 )
 from rangemcl.mapping.meshmap import MeshMap
 from rangemcl.rangeimage import RangeImageGeometry
@@ -216,3 +217,41 @@ def test_a_prior_rendered_with_tiles_held_coarse_is_not_taken_for_the_whole_maps
     (full, how), _ = in_view(100.0)
     assert how == "built" and np.array_equal(full.profiles, whole.profiles)
     assert PlacePrior.load(tmp_path / "map" / PRIOR_FILE, key) is not None
+
+
+def _line_prior(rng, cells=11, bins=72):
+    """Cells every 2 m along x with random profiles (both bands alike)."""
+    xy = np.column_stack([np.arange(cells) * 2.0, np.zeros(cells)])
+    prof = rng.integers(8, 240, (cells, 1, bins)).astype(np.uint8).repeat(2, axis=1)
+    return PlacePrior(xy, prof, PriorParams(bins=bins))
+
+
+def test_cost_at_a_cells_best_yaw_is_its_match_cost():
+    rng = np.random.default_rng(4)
+    prior = _line_prior(rng)
+    B = prior.params.bins
+    scan = rng.uniform(1.0, 29.0, (2, B))
+    known = np.ones((2, B), bool)
+    known[:, ::3] = False
+    m = prior.match(scan, known)
+    at = prior.cost_at(scan, known, prior.xy, m.yaw)
+    assert np.allclose(at, m.cost, rtol=1e-9, atol=1e-12)
+    # off the grid (farther than a grid step from every cell): no cost
+    assert np.isinf(prior.cost_at(scan, known, np.array([[0.0, 5.0]]), np.zeros(1))[0])
+
+
+def test_sequence_costs_separate_look_alikes_by_the_scans_before():
+    """Cells 5 and 8 look alike to today's scan; 2 m behind cell 5 lies what the scan 2 m back saw, behind
+    cell 8 not: over the sequence cell 5 wins, and today's match alone ties them."""
+    rng = np.random.default_rng(5)
+    prior = _line_prior(rng)
+    prior.profiles[8] = prior.profiles[5]
+    q = prior.params.quant_m
+    today = prior.profiles[5].astype(np.float64) * q
+    before = prior.profiles[4].astype(np.float64) * q
+    known = np.ones_like(today, bool)
+    now = prior.match(today, known)
+    assert now.cost[5] == pytest.approx(now.cost[8]) and now.cost[5] == pytest.approx(0.0, abs=1e-9)
+    past = [(prior.match(before, known), np.array([-2.0, 0.0, 0.0]))]  # 2 m behind, same heading
+    c = sequence_costs(prior, now, past)
+    assert np.argmin(c) == 5 and c[8] > c[5] + 0.1
