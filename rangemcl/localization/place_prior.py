@@ -143,7 +143,7 @@ class PlacePrior:
         # time, a chunk of cells at a time (kept whole they took 280 MB for town_large's 24,000 cells)
         self._table = _encode(np.arange(256, dtype=np.float64) * params.quant_m)
         self._coarse: np.ndarray | None = None  # the two-stage match's coarse profiles, made on first use
-        self._tree = None  # a k-d tree of the cell centres (cost_at), made on first use
+        self._tree = None  # a k-d tree of the cell centres (cell_tree), made on first use
 
     @property
     def nbytes(self) -> int:
@@ -259,35 +259,13 @@ class PlacePrior:
             yaw[lo : lo + len(cost)] = (s + np.clip(frac, -0.5, 0.5)) * (2 * np.pi / B)
         return best, yaw
 
-    def cost_at(self, profile: np.ndarray, known: np.ndarray, xy: np.ndarray, yaw: np.ndarray) -> np.ndarray:
-        """The match's cost of a scan's profile at given poses, not at each cell's best yaw: each pose
-        ``(xy (K, 2), yaw (K,))`` compared at the cell nearest to it (a cell farther than a grid step
-        costs ``inf``) and at the shift of its yaw (rounded to a bin). Used to score a past scan at the
-        poses where the odometry puts it behind today's candidates (:func:`sequence_costs`)."""
-        B = self.params.bins
-        prof = np.asarray(profile, np.float64).reshape(2, B)
-        kn = np.asarray(known, bool).reshape(2, B)
-        band = 1 if kn[1].sum() >= self.params.min_known_share * B else 0
-        m = kn[band]
-        n = int(m.sum())
-        xy = np.asarray(xy, np.float64).reshape(-1, 2)
-        if n < 1:
-            return np.full(len(xy), np.inf)
-        cell, near = self._nearest_cell(xy)
-        shift = np.rint(np.asarray(yaw, np.float64) / (2 * np.pi / B)).astype(np.int64)
-        idx = (np.flatnonzero(m)[None, :] + shift[:, None]) % B  # (K, n): the cell bin of each known bin
-        enc = self._table[self.profiles[cell[:, None], band, idx]]
-        cost = np.mean((enc - _encode(prof[band][m])[None, :]) ** 2, axis=1)
-        return np.where(near, cost, np.inf)
-
-    def _nearest_cell(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The nearest cell of each point and whether it lies within one grid step."""
+    def cell_tree(self):
+        """A k-d tree of the cell centres (made on first use)."""
         if self._tree is None:
             from scipy.spatial import cKDTree
 
             self._tree = cKDTree(self.xy)
-        d, cell = self._tree.query(xy, k=1)
-        return cell, d <= self.params.cell_m
+        return self._tree
 
     def candidates(
         self, points: np.ndarray, sensor_height_m: float, top: int
@@ -436,9 +414,7 @@ def sequence_costs(
     total = np.array(current.cost, np.float64)
     for match, rel in past:
         at = se2_compose(poses, np.broadcast_to(np.asarray(rel, np.float64), poses.shape))
-        if prior._tree is None:
-            prior._nearest_cell(prior.xy[:1])  # makes the tree
-        _d, idx = prior._tree.query(at[:, :2], k=9, distance_upper_bound=radius)
+        _d, idx = prior.cell_tree().query(at[:, :2], k=9, distance_upper_bound=radius)
         finite = np.isfinite(match.cost)
         worst = float(match.cost[finite].max()) if finite.any() else 0.0
         cost = np.append(np.where(finite, match.cost, worst), worst)  # index K: no cell there

@@ -62,10 +62,7 @@ def _band_weights(
         has = np.bincount(part, minlength=3) > 0
         t = tall_share if has[0] and has[1] else float(has[0])  # a structure part alone takes its share
         g = ground_share if has[2] and (has[0] or has[1]) else float(has[2])  # ... and the road alike
-        share = np.array([(1.0 - g) * t, (1.0 - g) * (1.0 - t), g])
-        if share.sum() <= 0:  # only parts without a share hold points: draw them alike
-            share = has.astype(np.float64)
-        share = share / share.sum()
+        share = np.array([(1.0 - g) * t, (1.0 - g) * (1.0 - t), g])  # sums to 1 over the parts present
     _, inverse, counts = np.unique(key * 3 + part, return_inverse=True, return_counts=True)
     inverse = inverse.reshape(-1)
     group_part = np.zeros(len(counts), np.int64)

@@ -226,20 +226,6 @@ def _line_prior(rng, cells=11, bins=72):
     return PlacePrior(xy, prof, PriorParams(bins=bins))
 
 
-def test_cost_at_a_cells_best_yaw_is_its_match_cost():
-    rng = np.random.default_rng(4)
-    prior = _line_prior(rng)
-    B = prior.params.bins
-    scan = rng.uniform(1.0, 29.0, (2, B))
-    known = np.ones((2, B), bool)
-    known[:, ::3] = False
-    m = prior.match(scan, known)
-    at = prior.cost_at(scan, known, prior.xy, m.yaw)
-    assert np.allclose(at, m.cost, rtol=1e-9, atol=1e-12)
-    # off the grid (farther than a grid step from every cell): no cost
-    assert np.isinf(prior.cost_at(scan, known, np.array([[0.0, 5.0]]), np.zeros(1))[0])
-
-
 def test_sequence_costs_separate_look_alikes_by_the_scans_before():
     """Cells 5 and 8 look alike to today's scan; 2 m behind cell 5 lies what the scan 2 m back saw, behind
     cell 8 not: over the sequence cell 5 wins, and today's match alone ties them."""
