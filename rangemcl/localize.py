@@ -563,6 +563,13 @@ class LocalizationPipeline:
                 "megabytes": loc.prior.nbytes / 1e6,
                 "build_seconds": loc.prior.build_s,
             }
+        if loc.beam_prior is not None:  # a sensor that sees nothing above the parked cars (the MQ-8)
+            summary["beam_prior"] = {
+                "source": loc.beam_prior_source,
+                "beam_deg": loc.beam_prior.params.beam_deg,
+                "megabytes": loc.beam_prior.nbytes / 1e6,
+                "build_seconds": loc.beam_prior.build_s,
+            }
         if self.metrics is not None:
             summary["metrics"] = {
                 k: self.metrics.get(k)

@@ -162,6 +162,10 @@ class RecoverySettings:
     # scan (rangemcl.localization.lost) hold one that explains it clearly better; else it is vetoed
     opinion_top: int = 30  # ... those places (at least separation_m from the estimate) ...
     opinion_per_place: int = 16  # ... each with this many particles over its cell
+    polish_places: int = 8  # ... then the best this many places get a second look (0: none, revision 9):
+    polish_per_place: int = 48  # ... this many particles around each one's best particle ...
+    polish_sigma_xy_m: float = 0.3  # ... spread this much (normal) ...
+    polish_sigma_yaw_deg: float = 1.0  # ... and this much in yaw (revision 10; rangemcl.localization.lost)
     opinion_inlier_gain: float = 0.15  # better: inlier share higher by this (and a lower residual)
     opinion_badness_ratio: float = 0.7  # ... or, for models without an inlier share, badness below this x
     opinion_min_range_m: float = 5.0  # the opinion compares rays measured at least this far (a
@@ -202,6 +206,8 @@ class InitSettings:
     prior_top: int = 300  # the prior's best (cell, yaw) candidates drawn from (at most 2 % of its cells)
     prior_cell_m: float = 2.0  # the prior's grid
     prior_yaw_sigma_deg: float = 2.0  # yaw spread around a candidate's aligned yaw
+    beam_prior: bool = True  # a scan with nothing in the prior's high band (the MQ-8) is matched with a
+    # prior of the sensor's own top beam instead of the low band (revision 10; place_prior module)
     inject_share: float = 0.05  # while searching: fresh prior particles per update (of the cloud), at the
     inject_top: int = 30  # prior's best places for that scan ...
     inject_below_share: float = 0.9  # ... while no hypothesis holds this share of the weight (1: always;
@@ -326,6 +332,10 @@ class LocalizerSettings:
             "recovery.inlier_residual_jump": r.inlier_residual_jump,
             "recovery.opinion_inlier_gain": r.opinion_inlier_gain,
             "recovery.probation_updates": r.probation_updates,
+            "recovery.polish_places": r.polish_places,
+            "recovery.polish_per_place": r.polish_per_place,
+            "recovery.polish_sigma_xy_m": r.polish_sigma_xy_m,
+            "recovery.polish_sigma_yaw_deg": r.polish_sigma_yaw_deg,
             "init.prior_yaw_sigma_deg": self.init.prior_yaw_sigma_deg,
             "motion.calibration_prior_m": m.calibration_prior_m,
             "motion.calibration_prior_s": m.calibration_prior_s,
@@ -491,6 +501,10 @@ def build_localizer(
             second_opinion=r.second_opinion,
             opinion_top=r.opinion_top,
             opinion_per_place=r.opinion_per_place,
+            polish_places=r.polish_places,
+            polish_per_place=r.polish_per_place,
+            polish_sigma_xy_m=r.polish_sigma_xy_m,
+            polish_sigma_yaw_deg=r.polish_sigma_yaw_deg,
             opinion_inlier_gain=r.opinion_inlier_gain,
             opinion_badness_ratio=r.opinion_badness_ratio,
             opinion_min_range_m=r.opinion_min_range_m,
@@ -573,6 +587,7 @@ def build_localizer(
         heading_sigma_deg=i.heading_sigma_deg,
         place_prior=i.place_prior,
         prior_params=PriorParams(cell_m=i.prior_cell_m),
+        beam_prior=i.beam_prior,
         prior_share=i.prior_share,
         prior_top=i.prior_top,
         prior_yaw_sigma_deg=i.prior_yaw_sigma_deg,

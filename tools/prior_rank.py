@@ -8,6 +8,7 @@ error of the aligned yaw there.
     python tools/prior_rank.py --seq SEQ --map BIG_MAP --map-memory 700   # a map too large to hold whole
     python tools/prior_rank.py --seq SEQ --map BIG_MAP --map-memory 700 --two-stage off   # one stage
     python tools/prior_rank.py --seq SEQ --map MAP --sequence 4 --spacing 3   # with the last 4 scans
+    python tools/prior_rank.py --seq SEQ --map MAP --beam off   # the band prior even for an MQ-8
 
 "The true place" is the best-matching cell within ``--radius`` (1.5 m: a 2 m grid has a cell centre
 within 1.42 m of any point) of the true sensor position; its rank counts the cells farther than
@@ -18,7 +19,8 @@ priors of 50,000 cells and more) a true place left out of the shortlist ranks be
 cell. With ``--sequence N`` each cell is ranked by its mean cost over today's scan and the N scans
 taken every ``--spacing`` metres of odometry before it, each scored where the drive's odometry puts it
 behind the cell (:func:`rangemcl.localization.place_prior.sequence_costs`); the one-scan ranks are
-printed beside.
+printed beside. As the localizer, a drive whose scans have nothing in the prior's high band (the MQ-8) is
+matched with the prior of its sensor's top beam (``--beam off``: with the band prior's low band).
 """
 
 from __future__ import annotations
@@ -50,12 +52,23 @@ def run() -> None:
     )
     ap.add_argument("--sequence", type=int, default=0, help="also rank over this many past scans")
     ap.add_argument("--spacing", type=float, default=3.0, help="metres of odometry between those scans")
+    ap.add_argument(
+        "--beam",
+        choices=("auto", "off"),
+        default="auto",
+        help="auto: as the localizer, a sensor that sees nothing in the high band uses its top beam's prior",
+    )
     args = ap.parse_args()
 
     from rangemcl.dataset import load_sequence
     from rangemcl.errors import InputError
     from rangemcl.evaluate import xyyaw_of
-    from rangemcl.localization.place_prior import circular_distance_deg, scan_profile, sequence_costs
+    from rangemcl.localization.place_prior import (
+        circular_distance_deg,
+        elevations_deg,
+        scan_profile,
+        sequence_costs,
+    )
     from rangemcl.localize import _sensor_height, odometry_xyyaw
     from rangemcl.mapping.view import open_map
     from rangemcl.mcl import LocalizerSettings, build_localizer
@@ -66,10 +79,18 @@ def run() -> None:
     if seq.poses is None:
         raise InputError(f"{args.seq}: the drive has no poses.txt")
     settings = LocalizerSettings()
+    settings.init.beam_prior = args.beam == "auto"
     height, _ = _sensor_height(seq, mesh_map, settings)
     loc = build_localizer(mesh_map, settings, seed=0, sensor_height_m=height, caster=caster)
     t0 = time.perf_counter()
-    prior = loc.place_prior()
+
+    def scan_at(i: int):
+        raw = np.asarray(seq.scan(i), np.float64)
+        if seq.imu_roll_pitch is not None:
+            return raw, raw @ rotation_roll_pitch(*seq.imu_roll_pitch[i]).T
+        return raw, raw
+
+    prior = loc.prior_for(*scan_at(0)[::-1])
     ready_s = time.perf_counter() - t0
     truth = xyyaw_of(seq.poses @ seq.calib_Tr)
     odo, _source = odometry_xyyaw(seq, False)
@@ -84,10 +105,8 @@ def run() -> None:
 
     step = args.every if args.sequence <= 0 else 1
     for i in range(0, len(seq), step):
-        pts = np.asarray(seq.scan(i), np.float64)
-        if seq.imu_roll_pitch is not None:
-            pts = pts @ rotation_roll_pitch(*seq.imu_roll_pitch[i]).T
-        prof, known = scan_profile(pts, height, prior.params)
+        raw, pts = scan_at(i)
+        prof, known = scan_profile(pts, height, prior.params, elevations_deg(raw))
         t1 = time.perf_counter()
         m = prior.match(prof, known, two_stage={"auto": None, "on": True, "off": False}[args.two_stage])
         if args.sequence > 0 and i % args.every:  # only kept for the sequence
@@ -112,7 +131,8 @@ def run() -> None:
         "map": args.map,
         "cells": len(prior.xy),
         "two_stage": args.two_stage,
-        "prior": loc.prior_source,
+        "prior": loc.beam_prior_source if prior is loc.beam_prior else loc.prior_source,
+        "beam_deg": prior.params.beam_deg,
         "prior_ready_s": ready_s,
         "scans": len(r),
         "rank_median": float(np.median(r)),
@@ -138,7 +158,13 @@ def run() -> None:
             "rank_median": float(np.median(q)),
         }
     print(
-        f"{out['scans']} scans, {out['cells']:,} cells (prior {out['prior']} in {ready_s:.1f} s): true place "
+        f"{out['scans']} scans, {out['cells']:,} cells ("
+        + (
+            "band prior"
+            if prior.params.beam_deg is None
+            else f"prior of the {prior.params.beam_deg:g} deg beam"
+        )
+        + f" {out['prior']} in {ready_s:.1f} s): true place "
         f"first in {100 * out['share_first']:.0f} %, in the best 10 in {100 * out['share_top10']:.0f} %, "
         f"100: {100 * out['share_top100']:.0f} %, 300: {100 * out['share_top300']:.0f} %; rank median "
         f"{out['rank_median']:.0f}, p90 {out['rank_p90']:.0f}; aligned yaw error median "

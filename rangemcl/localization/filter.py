@@ -46,8 +46,16 @@ from rangemcl.localization.hypotheses import (
     resample_by_cluster,
     summarize,
 )
-from rangemcl.localization.lost import LostDetector, Opinion, candidate_particles, second_opinion
-from rangemcl.localization.place_prior import PlacePrior, PriorParams, load_or_build
+from rangemcl.localization.lost import LostDetector, Opinion, Polish, candidate_particles, second_opinion
+from rangemcl.localization.place_prior import (
+    PlacePrior,
+    PriorParams,
+    beam_params,
+    elevations_deg,
+    load_or_build,
+    scan_profile,
+    top_beam_deg,
+)
 from rangemcl.localization.refine import ScanRefiner
 from rangemcl.localization.scan_prep import ScanRays
 from rangemcl.localization.spread import DrivableArea, uniform_particles
@@ -157,6 +165,7 @@ class MonteCarloLocalizer:
         heading_sigma_deg: float = 15.0,
         place_prior: bool = True,
         prior_params: PriorParams | None = None,
+        beam_prior: bool = True,
         prior_share: float = 0.7,
         prior_top: int = 300,
         prior_yaw_sigma_deg: float = 2.0,
@@ -220,6 +229,7 @@ class MonteCarloLocalizer:
         self.heading_sigma = math.radians(heading_sigma_deg)
         self.use_prior = bool(place_prior)
         self.prior_params = prior_params or PriorParams()
+        self.use_beam_prior = bool(beam_prior)
         self.prior_share = float(prior_share)
         self.prior_top = int(prior_top)
         self.prior_yaw_sigma = math.radians(prior_yaw_sigma_deg)
@@ -245,6 +255,10 @@ class MonteCarloLocalizer:
 
         self.prior: PlacePrior | None = None
         self.prior_source = ""
+        self.beam_prior: PlacePrior | None = None  # the sensor's own top beam (scans with no high band)
+        self.beam_prior_source = ""
+        self._beam_checked = False  # the top beam was looked for (once per run)
+        self._scan_raw: np.ndarray | None = None  # the scan being weighed, unlevelled (for the beam prior)
         self.particles = np.zeros((0, 3))
         self.log_w = np.zeros(0)
         self.converged = False
@@ -284,6 +298,46 @@ class MonteCarloLocalizer:
             self._count_in_budget("place prior", self.prior.nbytes)
         return self.prior
 
+    def prior_for(self, levelled_points: np.ndarray, raw_points: np.ndarray | None = None) -> PlacePrior:
+        """The prior a scan is matched with: the band prior, unless the scan has nothing in its high band
+        (a sensor that sees nothing above the parked cars, such as the MQ-8) and ``beam_prior`` is on:
+        then the prior of the sensor's own top beam (decided at the first scan matched, which also gives
+        the beam's elevation, for the rest of the run; loaded
+        from the map folder or rendered there once; :func:`rangemcl.localization.place_prior.beam_params`).
+        ``raw_points``: the scan before levelling (default: the scan being weighed)."""
+        prior = self.place_prior()
+        if not self.use_beam_prior:
+            return prior
+        if self.beam_prior is None:
+            if self._beam_checked:  # decided once per run, at the first scan matched
+                return prior
+            self._beam_checked = True
+            p = prior.params
+            _prof, known = scan_profile(levelled_points, self.sensor_height_m, p)
+            if known[1].sum() >= p.min_known_share * p.bins:
+                return prior
+            raw = self._scan_raw if raw_points is None else raw_points
+            if raw is None or len(raw) != len(levelled_points):
+                return prior
+            top = top_beam_deg(raw, p.min_range_m)
+            if top is None or top >= 0.0:  # a beam at or above the horizon: the bands see what it sees
+                return prior
+            area = self.init_cells
+            params = beam_params(p, top, self.sensor_height_m)
+            self.beam_prior, self.beam_prior_source = load_or_build(
+                self.map, self.caster, area.corners, area.cell_m, params
+            )
+            self._count_in_budget("beam place prior", self.beam_prior.nbytes)
+        return self.beam_prior
+
+    def _elevations(self, prior: PlacePrior, levelled_points: np.ndarray) -> np.ndarray | None:
+        """For a beam prior, the scan's elevations in the sensor's frame (the points before levelling)."""
+        if prior.params.beam_deg is None or self._scan_raw is None:
+            return None
+        if len(self._scan_raw) != len(levelled_points):
+            return None
+        return elevations_deg(self._scan_raw)
+
     def _count_in_budget(self, what: str, nbytes: int) -> None:
         """A map held within a memory budget (``rangemcl.mapping.view.MapView``) counts what the filter
         derives from it against that budget; a whole map has no budget."""
@@ -320,9 +374,11 @@ class MonteCarloLocalizer:
         """``n`` particles around the prior's ``top`` best places for this scan (default ``prior_top``,
         at most 2 % of the map's cells); None when the scan has too few points in the prior's height band
         to compare."""
-        prior = self.place_prior()
+        prior = self.prior_for(levelled_points)
         top = min(top or self.prior_top, max(20, len(prior.xy) // 50))
-        xy, yaw, _cost, known = prior.candidates(levelled_points, self.sensor_height_m, top)
+        xy, yaw, _cost, known = prior.candidates(
+            levelled_points, self.sensor_height_m, top, self._elevations(prior, levelled_points)
+        )
         if known < max(8, prior.params.bins // 20) or n <= 0:
             return None
         k = self.rng.integers(0, len(xy), n)
@@ -434,6 +490,8 @@ class MonteCarloLocalizer:
 
                 def level() -> np.ndarray:
                     out = np.asarray(points, np.float64).reshape(-1, 3)
+                    if self.use_beam_prior and self.use_prior:  # the beam prior picks its ring unlevelled
+                        self._scan_raw = out
                     if roll_pitch is not None and self.level_with_imu:
                         out = out @ rotation_roll_pitch(*roll_pitch).T
                     return out
@@ -722,8 +780,10 @@ class MonteCarloLocalizer:
             rays.valid_points,
             None if rays.structure is None else rays.structure[far],
         )
-        prior = self.place_prior()
-        xy, yaw, _cost, known = prior.candidates(levelled, self.sensor_height_m, lost.opinion_top)
+        prior = self.prior_for(levelled)
+        xy, yaw, _cost, known = prior.candidates(
+            levelled, self.sensor_height_m, lost.opinion_top, self._elevations(prior, levelled)
+        )
         if known < max(8, prior.params.bins // 20):
             return None
         consult = getattr(self.map, "consult", None)  # a map within a budget: only the places held
@@ -738,6 +798,9 @@ class MonteCarloLocalizer:
         cand = candidate_particles(
             xy, yaw, lost.opinion_per_place, prior.params.cell_m, self.prior_yaw_sigma, self.rng
         )
+        polish = Polish(lost.polish_places, lost.polish_per_place, *lost.polish_sigma, self.rng)
+        if lost.rival is not None and polish.places > 0:  # the last better place, moved with the odometry
+            cand = np.vstack([cand, lost.rival[None], polish.around(lost.rival[None])])
 
         def score(p: np.ndarray):
             _loglik, bad = self.scorer.score(sub, p, self.sensor_z(p[:, :2]))
@@ -753,5 +816,6 @@ class MonteCarloLocalizer:
             cand,
             min_distance_m=self.separation_m,
             inlier_gain=lost.opinion_inlier_gain,
+            polish=polish,
             badness_ratio=lost.opinion_badness_ratio,
         )

@@ -468,3 +468,37 @@ def test_structure_sampling_gives_the_tall_structure_its_share():
     r = prepare_rays(np.vstack([road, cars, facade[:100]]), only_tall, rng, sensor_height_m=HEIGHT)
     h = r.directions[:, 2] * r.ranges + HEIGHT
     assert len(r.ranges) == 500 and int(np.sum(h >= 2.0)) == 100
+
+
+@pytest.mark.parametrize("beam_prior", [True, False])
+def test_a_sensor_below_the_horizon_is_matched_with_its_top_beams_prior(world, beam_prior):
+    town, caster, m, path, _geo = world
+    mq8 = RangeImageGeometry.for_spec(load_spec("mq-8").with_columns(720))
+    hdl = RangeImageGeometry.for_spec(load_spec("hdl-32e").with_columns(360))
+    s = small_settings()
+    s.init.beam_prior = beam_prior
+    rp = (0.0, math.radians(0.5))  # pitched 0.5 degrees, levelled by the IMU
+
+    def first_update(geo):
+        loc = build_localizer(m, s, seed=3, caster=caster)
+        loc.spread()
+        for k in range(30, 50):
+            if loc.step(
+                se2_between(path[k - 1], path[k]), scan_at(town, caster, geo, path[k], rp), roll_pitch=rp
+            ).updated:
+                return loc, path[k]
+        raise AssertionError("no update")
+
+    # an HDL-32E sees the high band: the band prior, whatever the setting
+    loc, _ = first_update(hdl)
+    assert loc.beam_prior is None
+    # the MQ-8: the prior of its -1.57 degree beam
+    loc, truth = first_update(mq8)
+    if not beam_prior:
+        assert loc.beam_prior is None
+        return
+    assert loc.beam_prior is not None and loc.beam_prior.params.beam_deg == pytest.approx(-1.57)
+    # the particles drawn from it include the true pose (within a cell and 5 degrees)
+    d = np.hypot(loc.particles[:, 0] - truth[0], loc.particles[:, 1] - truth[1])
+    dyaw = np.abs((loc.particles[:, 2] - truth[2] + np.pi) % (2 * np.pi) - np.pi)
+    assert ((d < 1.5) & (dyaw < math.radians(5))).sum() >= 5

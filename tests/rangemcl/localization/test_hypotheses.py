@@ -340,7 +340,7 @@ def test_over_a_map_within_a_budget_the_second_opinion_finds_a_place_whose_tiles
         k = run(view, caster)
         if consult:
             assert view.unscored_places > 0  # the true street's tiles were asked for, not held at first
-            assert k is not None and k <= whole + 4
+            assert k is not None and k <= 10  # within as many updates as the whole map is allowed
             assert view.cache.peak_bytes <= view.cache.budget_bytes
         else:
             assert k is None

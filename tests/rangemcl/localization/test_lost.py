@@ -9,7 +9,14 @@ import math
 import numpy as np
 import pytest
 
-from rangemcl.localization.lost import LostDetector, Opinion, SignalWatch, candidate_particles, second_opinion
+from rangemcl.localization.lost import (
+    LostDetector,
+    Opinion,
+    Polish,
+    SignalWatch,
+    candidate_particles,
+    second_opinion,
+)
 from rangemcl.se2 import se2_compose
 
 
@@ -96,6 +103,35 @@ def test_the_second_opinion_finds_the_true_place_only_when_the_filter_is_elsewhe
     assert op.better and math.isnan(op.inliers)
     op = second_opinion(lambda p: (score(p)[0], None), wrong, 0.12, math.nan, cand, min_distance_m=5.0)
     assert not op.better
+
+
+def test_a_second_look_around_the_best_places_finds_a_sharply_peaked_true_pose():
+    """A sensor whose evidence peaks within a few decimetres and a degree (the MQ-8's far rays): the
+    candidates over the true place's cell all miss the peak; the polish finds it."""
+    rng = np.random.default_rng(4)
+    truth = np.array([50.0, 20.0, 0.3])
+
+    def score(p):
+        d = np.hypot(p[:, 0] - truth[0], p[:, 1] - truth[1]) + 10.0 * np.abs(
+            np.angle(np.exp(1j * (p[:, 2] - truth[2])))
+        )
+        return 0.1 + 0.3 * np.minimum(d, 1.0), np.exp(-d / 0.3)
+
+    places = np.vstack([truth[:2] + np.array([0.9, -0.7]), rng.uniform(-200, 200, (29, 2))])
+    yaws = np.concatenate([[truth[2] + math.radians(2.5)], rng.uniform(-3, 3, 29)])
+    cand = candidate_particles(places, yaws, 16, 2.0, math.radians(2.0), np.random.default_rng(5))
+    wrong = np.array([130.0, 20.0, 0.3])
+    plain = second_opinion(score, wrong, 0.35, 0.45, cand, min_distance_m=5.0)
+    assert not plain.better  # the cell's particles fit worse than the filter's wrong place
+    polish = Polish(places=8, per_place=48, sigma_xy_m=0.3, sigma_yaw_deg=1.0, rng=np.random.default_rng(6))
+    op = second_opinion(score, wrong, 0.35, 0.45, cand, min_distance_m=5.0, polish=polish)
+    assert op.better and np.hypot(*(op.pose[:2] - truth[:2])) < 0.4 and op.inliers > plain.inliers + 0.3
+    assert op.candidates == len(cand) + 2 * 8 * 48  # two rounds
+    # the seeds are distinct places, best first, and the second look stays away from the estimate
+    seeds = polish.seeds(np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [10.0, 0.0, 0.0]]))
+    assert seeds[:, 0].tolist() == [0.0, 10.0]
+    op = second_opinion(score, truth, 0.1, 0.99, cand, min_distance_m=5.0, polish=polish)
+    assert np.hypot(*(op.pose[:2] - truth[:2])) > 5.0
 
 
 def test_no_candidate_far_enough_is_no_opinion():

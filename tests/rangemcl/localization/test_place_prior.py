@@ -12,14 +12,18 @@ import pytest
 from rangemcl import meshgen
 from rangemcl.errors import InputError
 from rangemcl.localization.place_prior import (
+    BEAM_MAX_RANGE_M,
     PRIOR_FILE,
     PlacePrior,
     PriorParams,
+    beam_params,
     circular_distance_deg,
+    elevations_deg,
     grid_cells,
     load_or_build,
     scan_profile,
     sequence_costs,
+    top_beam_deg,
 )
 from rangemcl.mapping.meshmap import MeshMap
 from rangemcl.rangeimage import RangeImageGeometry
@@ -241,3 +245,78 @@ def test_sequence_costs_separate_look_alikes_by_the_scans_before():
     past = [(prior.match(before, known), np.array([-2.0, 0.0, 0.0]))]  # 2 m behind, same heading
     c = sequence_costs(prior, now, past)
     assert np.argmin(c) == 5 and c[8] > c[5] + 0.1
+
+
+def test_top_beam_is_the_highest_ring_of_returns_despite_stray_points():
+    rng = np.random.default_rng(5)
+    rings = np.radians([-14.0, -8.1, -3.17, -2.37, -1.57])
+    az = rng.uniform(-math.pi, math.pi, (len(rings), 2000))
+    el = np.broadcast_to(rings[:, None], az.shape)
+    r = rng.uniform(3.0, 60.0, az.shape)
+    pts = np.stack([r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)], -1).reshape(
+        -1, 3
+    )
+    stray = np.column_stack([rng.uniform(5, 20, 20), rng.uniform(-5, 5, 20), rng.uniform(1, 5, 20)])
+    assert top_beam_deg(np.vstack([pts, stray])) == pytest.approx(-1.57, abs=1e-6)
+    assert top_beam_deg(pts[:100]) is None  # too few points to tell
+
+
+def _tilted_scan(t, caster, x, y, yaw, pitch, sensor="mq-8", columns=720):
+    """A scan from a sensor pitched by ``pitch`` (radians): the raw points (sensor frame) and the points
+    levelled by that pitch."""
+    geo = RangeImageGeometry.for_spec(load_spec(sensor).with_columns(columns))
+    z = float(t.ground_height(x, y)) + HEIGHT
+    c, s = math.cos(yaw), math.sin(yaw)
+    Rz = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    Ry = np.array([[cp, 0, sp], [0, 1.0, 0], [-sp, 0, cp]])
+    d = geo.directions.reshape(-1, 3)
+    hits = caster.cast(np.array([x, y, z]), d @ (Rz @ Ry).T, 120.0)
+    raw = d[hits.hit] * hits.ranges[hits.hit, None]
+    return raw, raw @ Ry.T
+
+
+def test_a_beam_prior_ranks_the_true_cell_first_for_a_sensor_below_the_horizon(town, tmp_path):
+    t, caster, m, band_prior = town
+    rng = np.random.default_rng(6)
+    raw0, _ = _tilted_scan(t, caster, *band_prior.xy[0], 0.0, 0.0)
+    params = beam_params(PriorParams(), top_beam_deg(raw0), HEIGHT)
+    assert params.beam_deg == pytest.approx(-1.57) and params.rows == 1 and params.dtype == np.uint16
+    prior = PlacePrior.build(caster, band_prior.xy, m.ground.height_at(*band_prior.xy.T), params)
+    ranks, yaw_err = [], []
+    for k in rng.choice(len(prior.xy), 8, replace=False):
+        x, y = prior.xy[k]
+        yaw = rng.uniform(-math.pi, math.pi)
+        raw, levelled = _tilted_scan(t, caster, x, y, yaw, math.radians(0.6))
+        _, known_bands = scan_profile(levelled, HEIGHT, band_prior.params)
+        assert known_bands[1].sum() == 0  # nothing 2 m up: the band prior would use its low band
+        # the ring is picked by its elevation before levelling (0.6 degrees of pitch would mix it with the
+        # next ring's, 0.8 degrees below)
+        prof, known = scan_profile(levelled, HEIGHT, params, elevations_deg(raw))
+        assert known.shape == (1, params.bins) and known.mean() > 0.5  # off the town: no return
+        mt = prior.match(prof, known)
+        ranks.append(int((mt.cost < mt.cost[k]).sum()))
+        yaw_err.append(float(circular_distance_deg(mt.yaw[k], yaw)))
+    assert np.mean(np.array(ranks) == 0) >= 0.85 and max(ranks) <= 0.01 * len(prior.xy), ranks
+    assert max(yaw_err) <= 2 * 360.0 / params.bins, yaw_err
+
+
+def test_a_beam_prior_is_stored_beside_the_band_prior_which_keeps_its_key(town, tmp_path):
+    _t, caster, m, _ = town
+    m.save(tmp_path / "map")
+    loaded = MeshMap.load(tmp_path / "map")
+    corners = np.array([[0.0, -27.0], [10.0, -27.0], [20.0, 23.0]])
+    band, _ = load_or_build(loaded, caster, corners, 1.0)
+    params = beam_params(PriorParams(), -1.571, HEIGHT)
+    beam, how = load_or_build(loaded, caster, corners, 1.0, params)
+    assert how == "built" and (tmp_path / "map" / params.file_name).is_file()
+    assert params.file_name != PRIOR_FILE and beam.profiles.shape == (len(band.xy), 1, params.bins)
+    again, how = load_or_build(loaded, caster, corners, 1.0, params)
+    assert how == "loaded" and again.params == params and np.array_equal(again.profiles, beam.profiles)
+    assert load_or_build(loaded, caster, corners, 1.0)[1] == "loaded"  # the band prior untouched
+    # a band prior's key is what it was before beam priors existed (stored priors stay valid)
+    assert "beam_deg" not in PriorParams().key_dict() and "beam_deg" in params.key_dict()
+    # the beam's hits are stored as horizontal distances, up to BEAM_MAX_RANGE_M
+    assert beam.profiles.max() * params.quant_m <= BEAM_MAX_RANGE_M + 1e-9
+    with pytest.raises(InputError, match="bad beam"):
+        beam_params(PriorParams(), -75.0, HEIGHT).check()
