@@ -17,7 +17,8 @@ Embree ``RaycastingScene`` in the same run as the peer.
   ``--search-frames``); median and largest seconds per frame before convergence (the cloud shrinks as the
   hypotheses thin out), the frame it converged at and its error then.
 * the place prior: rendered anew for the map (seconds), its size in memory and on disk, per km² of the
-  drivable area it covers.
+  drivable area it covers; the same for a beam prior (the prior of a sensor that sees nothing above the
+  parked cars: one beam, ``--beam-deg``, default the MQ-8's top beam, from the sensor's height).
 * peer: the same rays of the same particles cast by Embree (all cores) and reduced in numpy, on the same
   frames; ratio = Embree time / Warp time of the weighting (above 1: Warp is faster).
 
@@ -69,6 +70,9 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", help="also write the figures here")
+    ap.add_argument(
+        "--beam-deg", type=float, default=-1.57, help="the beam prior's beam (default: the MQ-8's top)"
+    )
     args = ap.parse_args()
 
     import open3d as o3d
@@ -200,7 +204,7 @@ def main() -> None:
     import tempfile
     from pathlib import Path
 
-    from rangemcl.localization.place_prior import PlacePrior, PriorParams, grid_cells
+    from rangemcl.localization.place_prior import PlacePrior, PriorParams, beam_params, grid_cells
 
     params = PriorParams(cell_m=settings.init.prior_cell_m)
     cells = grid_cells(loc.init_cells.corners, loc.init_cells.cell_m, params.cell_m)
@@ -220,6 +224,21 @@ def main() -> None:
         "disk_mb": disk / 1e6,
         "memory_mb_per_km2": prior.nbytes / 1e6 / area_km2,
         "build_s_per_km2": build_s / area_km2,
+    }
+    bparams = beam_params(params, args.beam_deg, loc.sensor_height_m)
+    t0 = time.perf_counter()
+    beam = PlacePrior.build(loc.caster, cells, mesh_map.ground.height_at(cells[:, 0], cells[:, 1]), bparams)
+    beam_s = time.perf_counter() - t0
+    with tempfile.TemporaryDirectory() as tmp:
+        beam.save(Path(tmp) / "b.npz", "bench")
+        beam_disk = (Path(tmp) / "b.npz").stat().st_size
+    prior_fig["beam"] = {
+        "beam_deg": bparams.beam_deg,
+        "build_s": beam_s,
+        "memory_mb": beam.nbytes / 1e6,
+        "disk_mb": beam_disk / 1e6,
+        "memory_mb_per_km2": beam.nbytes / 1e6 / area_km2,
+        "build_s_per_km2": beam_s / area_km2,
     }
     out = {
         "device": loc.caster.device,
@@ -271,6 +290,12 @@ def main() -> None:
         f"rendered in {build_s:.1f} s ({prior_fig['build_s_per_km2']:.0f} s per km2), "
         f"{prior_fig['memory_mb']:.1f} MB in memory ({prior_fig['memory_mb_per_km2']:.0f} MB per km2), "
         f"{prior_fig['disk_mb']:.1f} MB on disk"
+    )
+    b = prior_fig["beam"]
+    print(
+        f"beam prior ({b['beam_deg']:g} deg beam, {args.beam_deg:g} asked): rendered in {b['build_s']:.1f} s "
+        f"({b['build_s_per_km2']:.0f} s per km2), {b['memory_mb']:.1f} MB in memory "
+        f"({b['memory_mb_per_km2']:.0f} MB per km2), {b['disk_mb']:.1f} MB on disk"
     )
     if args.json:
         with open(args.json, "w") as fh:

@@ -19,9 +19,9 @@ already look right, from the map alone:
   where today's parked cars and the mapping drive's hide the facades. Its highest beam passes over
   the cars a few metres away and reaches the facades (or the road, 63 m out for the MQ-8's −1.57°), so
   the profile of that beam alone, rendered from the sensor's height at the beam's elevation, is compared
-  instead: measured on the town_large MQ-8 test drive (every 20th scan), true place first for 42 % of the
-  scans and within the best 300 for 95 %, aligned yaw error 4.2° at the 90th percentile, against 25 %,
-  47 % and 146° with the low band. Stored beside the band prior (``place_prior_beam*.npz``, one per beam
+  instead: measured on the town_large MQ-8 test drive (every 10th scan, ``tools/prior_rank.py``), true
+  place first for 41 % of the scans and within the best 300 for 89 %, aligned yaw error 5.4° at the 90th
+  percentile, against 20 %, 46 % and 144° with the low band (``--beam off``). Stored beside the band prior (``place_prior_beam*.npz``, one per beam
   elevation and sensor height).
 * **Scan side, every search update** (:func:`scan_profile`): the scan's points whose height above the
   ground lies in a band (``high_band_m``, ``band_m``), or for a beam prior whose elevation lies within
