@@ -164,8 +164,10 @@ class RecoverySettings:
     opinion_per_place: int = 16  # ... each with this many particles over its cell
     polish_places: int = 8  # ... then the best this many places get a second look (0: none, revision 9):
     polish_per_place: int = 48  # ... this many particles around each one's best particle ...
-    polish_sigma_xy_m: float = 0.3  # ... spread this much (normal) ...
-    polish_sigma_yaw_deg: float = 1.0  # ... and this much in yaw (revision 10; rangemcl.localization.lost)
+    polish_sigma_xy_m: float = 0.6  # ... spread this much (normal; three rounds, each with half the last
+    polish_sigma_yaw_deg: float = 3.0  # ... spread) and this much in yaw (revision 10; localization.lost)
+    doubt_opinions: bool = True  # a second opinion also at every update whose inlier share is below 0.8 of
+    # its running level, not only in a suspicion or the probation (revision 10)
     opinion_inlier_gain: float = 0.15  # better: inlier share higher by this (and a lower residual)
     opinion_badness_ratio: float = 0.7  # ... or, for models without an inlier share, badness below this x
     opinion_min_range_m: float = 5.0  # the opinion compares rays measured at least this far (a
@@ -513,6 +515,7 @@ def build_localizer(
             probation_hits=r.probation_hits,
             opinion_hits=r.opinion_hits,
             consistent_m=c.separation_m,
+            doubt_opinions=r.doubt_opinions,
         )
     if m.calibration == "particles":
         calibrator = ParticleCalibration(

@@ -21,8 +21,8 @@ already look right, from the map alone:
   the profile of that beam alone, rendered from the sensor's height at the beam's elevation, is compared
   instead: measured on the town_large MQ-8 test drive (every 10th scan, ``tools/prior_rank.py``), true
   place first for 41 % of the scans and within the best 300 for 89 %, aligned yaw error 5.4° at the 90th
-  percentile, against 20 %, 46 % and 144° with the low band (``--beam off``). Stored beside the band prior (``place_prior_beam*.npz``, one per beam
-  elevation and sensor height).
+  percentile, against 20 %, 46 % and 144° with the low band (``--beam off``). Stored beside the band
+  prior (``place_prior_beam*.npz``, one per beam elevation and sensor height).
 * **Scan side, every search update** (:func:`scan_profile`): the scan's points whose height above the
   ground lies in a band (``high_band_m``, ``band_m``), or for a beam prior whose elevation lies within
   ``beam_tol_deg`` of the beam's, give, per azimuth bin, the nearest horizontal distance. Bins with no

@@ -126,7 +126,7 @@ def test_a_second_look_around_the_best_places_finds_a_sharply_peaked_true_pose()
     polish = Polish(places=8, per_place=48, sigma_xy_m=0.3, sigma_yaw_deg=1.0, rng=np.random.default_rng(6))
     op = second_opinion(score, wrong, 0.35, 0.45, cand, min_distance_m=5.0, polish=polish)
     assert op.better and np.hypot(*(op.pose[:2] - truth[:2])) < 0.4 and op.inliers > plain.inliers + 0.3
-    assert op.candidates == len(cand) + 2 * 8 * 48  # two rounds
+    assert op.candidates == len(cand) + 3 * 8 * 48  # three rounds
     # the seeds are distinct places, best first, and the second look stays away from the estimate
     seeds = polish.seeds(np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [10.0, 0.0, 0.0]]))
     assert seeds[:, 0].tolist() == [0.0, 10.0]
@@ -141,10 +141,36 @@ def test_no_candidate_far_enough_is_no_opinion():
 
 
 def _detector(**kw):
+    """A detector whose suspicion comes at the second bad update (doubt alone asks no opinion unless
+    ``doubt_opinions=True`` is given)."""
     watch = SignalWatch(signal="inliers", updates=2)
     for _ in range(10):
         watch.update(0.1, 0.9)
-    return LostDetector(watch, probation_updates=0, **kw)
+    return LostDetector(watch, probation_updates=0, **{"doubt_opinions": False, **kw})
+
+
+def test_a_doubtful_update_asks_for_a_second_opinion_without_a_suspicion():
+    """An inlier share at 0.6 of its level (above the suspicion's 0.5, below the doubt's 0.8): with
+    doubt opinions a rival that keeps fitting better is confirmed; without, nobody is asked."""
+    motion = np.array([1.0, 0.0, 0.0])
+    for doubt, expected in ((True, [False, True]), (False, [False, False])):
+        det = _detector(doubt_opinions=doubt)
+        place = np.array([10.0, 0.0, 0.0])
+        calls, out = [], []
+        for _ in range(2):
+            op = lambda p=place.copy(), c=calls: c.append(1) or Opinion(True, p, 0.1, 0.95, 400)  # noqa: E731
+            out.append(det.update(0.1, 0.55, op, motion))
+            place = se2_compose(place, motion)
+        assert [o[0] for o in out] == expected and det.watch.bad_updates == 0
+        assert len(calls) == (2 if doubt else 0)
+        # a doubtful update keeps scoring the last better place (moved with the odometry)
+        if doubt:
+            assert np.allclose(det.rival, se2_compose(np.array([10.0, 0.0, 0.0]), motion))
+    # at the running level: no opinion asked
+    det = _detector(doubt_opinions=True)
+    calls = []
+    det.update(0.1, 0.9, lambda: calls.append(1) or Opinion(False, np.zeros(3), 0.5, 0.5, 1), motion)
+    assert calls == []
 
 
 def test_a_suspicion_is_lost_only_when_one_place_keeps_fitting_better():
