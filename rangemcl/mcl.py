@@ -167,7 +167,8 @@ class RecoverySettings:
     polish_sigma_xy_m: float = 0.6  # ... spread this much (normal; three rounds, each with half the last
     polish_sigma_yaw_deg: float = 3.0  # ... spread) and this much in yaw (revision 10; localization.lost)
     doubt_opinions: bool = True  # a second opinion also at every update whose inlier share is below 0.8 of
-    # its running level, not only in a suspicion or the probation (revision 10)
+    # its running level, not only in a suspicion or the probation (revision 10) ...
+    doubt_inlier_gain: float = 0.25  # ... where a better place must gain this much of the inlier share
     opinion_inlier_gain: float = 0.15  # better: inlier share higher by this (and a lower residual)
     opinion_badness_ratio: float = 0.7  # ... or, for models without an inlier share, badness below this x
     opinion_min_range_m: float = 5.0  # the opinion compares rays measured at least this far (a
@@ -333,6 +334,7 @@ class LocalizerSettings:
             "recovery.inlier_residual_factor": r.inlier_residual_factor,
             "recovery.inlier_residual_jump": r.inlier_residual_jump,
             "recovery.opinion_inlier_gain": r.opinion_inlier_gain,
+            "recovery.doubt_inlier_gain": r.doubt_inlier_gain,
             "recovery.probation_updates": r.probation_updates,
             "recovery.polish_places": r.polish_places,
             "recovery.polish_per_place": r.polish_per_place,
@@ -516,6 +518,7 @@ def build_localizer(
             opinion_hits=r.opinion_hits,
             consistent_m=c.separation_m,
             doubt_opinions=r.doubt_opinions,
+            doubt_inlier_gain=r.doubt_inlier_gain,
         )
     if m.calibration == "particles":
         calibrator = ParticleCalibration(

@@ -815,7 +815,7 @@ class MonteCarloLocalizer:
             float(own_inl[j]) if own_inl is not None else math.nan,
             cand,
             min_distance_m=self.separation_m,
-            inlier_gain=lost.opinion_inlier_gain,
+            inlier_gain=lost.inlier_gain_now,
             polish=polish,
             badness_ratio=lost.opinion_badness_ratio,
         )

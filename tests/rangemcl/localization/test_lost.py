@@ -166,6 +166,14 @@ def test_a_doubtful_update_asks_for_a_second_opinion_without_a_suspicion():
         # a doubtful update keeps scoring the last better place (moved with the odometry)
         if doubt:
             assert np.allclose(det.rival, se2_compose(np.array([10.0, 0.0, 0.0]), motion))
+    # a doubtful update asks its opinion for a clearer win than a suspicion or the probation does
+    det = _detector(doubt_opinions=True)
+    gains = []
+    det.update(0.1, 0.55, lambda: gains.append(det.inlier_gain_now) or None, motion)
+    det.probation_updates = 1
+    det.start_probation()
+    det.update(0.1, 0.55, lambda: gains.append(det.inlier_gain_now) or None, motion)
+    assert gains == [det.doubt_inlier_gain, det.opinion_inlier_gain] and gains[0] > gains[1]
     # at the running level: no opinion asked
     det = _detector(doubt_opinions=True)
     calls = []
