@@ -302,9 +302,9 @@ class MonteCarloLocalizer:
         """The prior a scan is matched with: the band prior, unless the scan has nothing in its high band
         (a sensor that sees nothing above the parked cars, such as the MQ-8) and ``beam_prior`` is on:
         then the prior of the sensor's own top beam (decided at the first scan matched, which also gives
-        the beam's elevation, for the rest of the run; loaded
-        from the map folder or rendered there once; :func:`rangemcl.localization.place_prior.beam_params`).
-        ``raw_points``: the scan before levelling (default: the scan being weighed)."""
+        the beam's elevation, for the rest of the run; loaded from the map folder or rendered there once:
+        :func:`rangemcl.localization.place_prior.beam_params`). ``raw_points``: the scan before levelling
+        (default: the scan being weighed)."""
         prior = self.place_prior()
         if not self.use_beam_prior:
             return prior
