@@ -46,7 +46,7 @@ import hashlib
 import json
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -126,8 +126,6 @@ BEAM_MAX_RANGE_M = 100.0  # a beam prior's profiles reach this far (the MQ-8's t
 def beam_params(base: PriorParams, beam_deg: float, sensor_height_m: float) -> PriorParams:
     """The beam prior's parameters for a sensor whose highest beam is at ``beam_deg`` (rounded to
     0.01°, so that one sensor's scans name one prior) mounted ``sensor_height_m`` above the ground."""
-    from dataclasses import replace
-
     return replace(
         base,
         beam_deg=round(float(beam_deg), 2),
@@ -171,9 +169,11 @@ def _encode(x: np.ndarray) -> np.ndarray:
     return np.log1p(np.asarray(x, np.float64))
 
 
-def _band_profile(p: np.ndarray, h: np.ndarray, r: np.ndarray, band, params: PriorParams):
+def _profile(p: np.ndarray, r: np.ndarray, keep: np.ndarray, params: PriorParams):
+    """Per azimuth bin the nearest horizontal distance ``r`` of the points ``keep`` selects (beyond
+    ``min_range_m``), and which bins have one."""
     B = params.bins
-    keep = (h >= band[0]) & (h <= band[1]) & (r >= params.min_range_m)
+    keep = keep & (r >= params.min_range_m)
     prof = np.full(B, params.max_range_m)
     known = np.zeros(B, bool)
     if keep.any():
@@ -200,15 +200,11 @@ def scan_profile(
     h = p[:, 2] + float(sensor_height_m)
     r = np.hypot(p[:, 0], p[:, 1])
     if params.beam_deg is not None:
-        if elevation_deg is None:
-            el = np.degrees(np.arctan2(p[:, 2], r))
-        else:
-            el = np.asarray(elevation_deg, np.float64).reshape(-1)[finite]
-        on = np.abs(el - params.beam_deg) <= params.beam_tol_deg
-        prof, known = _band_profile(p, np.where(on, 0.0, np.inf), r, (-1.0, 1.0), params)
+        el = elevations_deg(p) if elevation_deg is None else np.asarray(elevation_deg, np.float64)[finite]
+        prof, known = _profile(p, r, np.abs(el - params.beam_deg) <= params.beam_tol_deg, params)
         return prof[None], known[None]
-    low = _band_profile(p, h, r, params.band_m, params)
-    high = _band_profile(p, h, r, params.high_band_m, params)
+    low = _profile(p, r, (h >= params.band_m[0]) & (h <= params.band_m[1]), params)
+    high = _profile(p, r, (h >= params.high_band_m[0]) & (h <= params.high_band_m[1]), params)
     return np.stack([low[0], high[0]]), np.stack([low[1], high[1]])
 
 
@@ -434,7 +430,7 @@ class PlacePrior:
                 )
                 params.check()
                 return cls(z["xy"], z["profiles"], params, build_s=float(meta.get("build_s", 0.0)))
-        except (OSError, ValueError, KeyError, TypeError) as err:
+        except (OSError, ValueError, KeyError, TypeError, InputError) as err:
             raise InputError(f"{path}: cannot read the place prior ({err}); delete it to rebuild") from None
 
 

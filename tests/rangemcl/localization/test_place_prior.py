@@ -167,11 +167,19 @@ def test_profile_of_a_scan_keeps_only_the_height_bands_and_marks_empty_bins():
     assert prof[0, 0] == p.max_range_m
 
 
+CORNERS = np.array([[0.0, -27.0], [10.0, -27.0], [20.0, 23.0]])  # a few drivable cells of the town
+
+
+def _saved_map(m, tmp_path) -> MeshMap:
+    """The town's map saved to a folder and loaded from it (a prior is stored beside it)."""
+    m.save(tmp_path / "map")
+    return MeshMap.load(tmp_path / "map")
+
+
 def test_prior_is_stored_in_the_map_folder_and_rebuilt_when_the_map_changes(town, tmp_path):
     _t, caster, m, _ = town
-    m.save(tmp_path / "map")
-    loaded = MeshMap.load(tmp_path / "map")
-    corners = np.array([[0.0, -27.0], [10.0, -27.0], [20.0, 23.0]])
+    loaded = _saved_map(m, tmp_path)
+    corners = CORNERS
     p1, how1 = load_or_build(loaded, caster, corners, 1.0)
     assert how1 == "built" and (tmp_path / "map" / PRIOR_FILE).is_file()
     p2, how2 = load_or_build(loaded, caster, corners, 1.0)
@@ -194,7 +202,7 @@ def test_a_prior_rendered_with_tiles_held_coarse_is_not_taken_for_the_whole_maps
 
     _t, caster, m, _ = town
     m.save(tmp_path / "map", coarse_ratio=0.05)
-    corners = np.array([[0.0, -27.0], [10.0, -27.0], [20.0, 23.0]])
+    corners = CORNERS
 
     # the ground grid and the drive count against a budget too: the budgets below are the tiles' share
     probe = MapView(tmp_path / "map", 100.0, RayCaster(threads=2))
@@ -276,7 +284,7 @@ def _tilted_scan(t, caster, x, y, yaw, pitch, sensor="mq-8", columns=720):
     return raw, raw @ Ry.T
 
 
-def test_a_beam_prior_ranks_the_true_cell_first_for_a_sensor_below_the_horizon(town, tmp_path):
+def test_a_beam_prior_ranks_the_true_cell_first_for_a_sensor_below_the_horizon(town):
     t, caster, m, band_prior = town
     rng = np.random.default_rng(6)
     raw0, _ = _tilted_scan(t, caster, *band_prior.xy[0], 0.0, 0.0)
@@ -303,9 +311,8 @@ def test_a_beam_prior_ranks_the_true_cell_first_for_a_sensor_below_the_horizon(t
 
 def test_a_beam_prior_is_stored_beside_the_band_prior_which_keeps_its_key(town, tmp_path):
     _t, caster, m, _ = town
-    m.save(tmp_path / "map")
-    loaded = MeshMap.load(tmp_path / "map")
-    corners = np.array([[0.0, -27.0], [10.0, -27.0], [20.0, 23.0]])
+    loaded = _saved_map(m, tmp_path)
+    corners = CORNERS
     band, _ = load_or_build(loaded, caster, corners, 1.0)
     params = beam_params(PriorParams(), -1.571, HEIGHT)
     beam, how = load_or_build(loaded, caster, corners, 1.0, params)
