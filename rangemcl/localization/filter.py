@@ -635,7 +635,7 @@ class MonteCarloLocalizer:
         self.last_estimate = pose_estimate(self.particles, w, self.estimate_best_share)
         if self.converged and self.lost is not None:
             opinion = (
-                (lambda: self._second_opinion(rays, level()))
+                (lambda rival, gain: self._second_opinion(rays, level(), rival, gain))
                 if self.use_prior and level is not None
                 else None
             )
@@ -763,11 +763,15 @@ class MonteCarloLocalizer:
         tiles = np.unique(self.map.tile_at(self.particles[:, 0], self.particles[:, 1]))
         return len(tiles) <= self.tiles and r95 <= self.max_radius_m
 
-    def _second_opinion(self, rays: ScanRays, levelled: np.ndarray) -> Opinion | None:
+    def _second_opinion(
+        self, rays: ScanRays, levelled: np.ndarray, rival: np.ndarray | None, inlier_gain: float
+    ) -> Opinion | None:
         """:func:`rangemcl.localization.lost.second_opinion` on the prior's best places for this scan,
         with the rays measured at least ``opinion_min_range_m`` away (near objects, vehicles alongside
         above all, fit any wall); the filter's own cloud is scored on the same rays. ``None`` when the
-        scan has too little in the prior's height band, or too few far rays, to compare. Over a map
+        scan has too little in the prior's height band, or too few far rays, to compare. ``rival``: a
+        place scored with them (the last better place moved with the odometry, or None); ``inlier_gain``:
+        what a better place must gain (:class:`rangemcl.localization.lost.LostDetector`). Over a map
         within a budget (:meth:`rangemcl.mapping.view.MapView.consult`) the places whose tiles are not
         held yet are asked for and left out of this opinion."""
         lost = self.lost
@@ -799,8 +803,8 @@ class MonteCarloLocalizer:
             xy, yaw, lost.opinion_per_place, prior.params.cell_m, self.prior_yaw_sigma, self.rng
         )
         polish = Polish(lost.polish_places, lost.polish_per_place, *lost.polish_sigma, self.rng)
-        if lost.rival is not None and polish.places > 0:  # the last better place, moved with the odometry
-            cand = np.vstack([cand, lost.rival[None], polish.around(lost.rival[None])])
+        if rival is not None and polish.places > 0:  # the last better place, moved with the odometry
+            cand = np.vstack([cand, rival[None], polish.around(rival[None])])
 
         def score(p: np.ndarray):
             _loglik, bad = self.scorer.score(sub, p, self.sensor_z(p[:, :2]))
@@ -815,7 +819,7 @@ class MonteCarloLocalizer:
             float(own_inl[j]) if own_inl is not None else math.nan,
             cand,
             min_distance_m=self.separation_m,
-            inlier_gain=lost.inlier_gain_now,
+            inlier_gain=inlier_gain,
             polish=polish,
             badness_ratio=lost.opinion_badness_ratio,
         )

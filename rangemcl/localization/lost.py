@@ -247,8 +247,12 @@ class LostDetector:
     opinion's settings, and the probation after each convergence.
 
     :meth:`update` takes the update's best badness and inlier share and a callable that gives the second
-    opinion (:class:`Opinion`, or None when the scan cannot be compared), called only when needed; it
-    returns ``(lost, vetoed)``. With ``second_opinion`` off (or no opinion callable: a filter without the
+    opinion, called only when needed as ``opinion(rival, inlier_gain)``: ``rival`` the last better place
+    moved with the odometry to where it should be now (to be scored again; None when there is none),
+    ``inlier_gain`` the gain in inlier share a better place must show (``doubt_inlier_gain`` at a doubtful
+    update outside a suspicion and the probation, else ``opinion_inlier_gain``); it returns an
+    :class:`Opinion`, or None when the scan cannot be compared. :meth:`update` returns
+    ``(lost, vetoed)``. With ``second_opinion`` off (or no opinion callable: a filter without the
     place prior) the watch alone decides."""
 
     def __init__(
@@ -279,9 +283,6 @@ class LostDetector:
         self.doubt_ratio = float(doubt_ratio)
         self.doubt_opinions = bool(doubt_opinions)
         self.doubt_inlier_gain = float(doubt_inlier_gain)
-        # the inlier gain the opinion being asked must show (set before each opinion: a doubtful update
-        # outside a suspicion and the probation asks for doubt_inlier_gain)
-        self.inlier_gain_now = float(opinion_inlier_gain)
         self.second_opinion = bool(second_opinion)
         self.opinion_top = int(opinion_top)
         self.opinion_per_place = int(opinion_per_place)
@@ -302,10 +303,6 @@ class LostDetector:
         self._probation = 0  # updates left in which each update gets a second opinion
         self._hits = 0  # consistent better places in a row
         self._last: np.ndarray | None = None  # the last better place
-        # where the last better place should be at the update being judged (set before its opinion is
-        # asked: the opinion scores it again, so that a rival the prior does not offer at every scan is
-        # not lost between two updates)
-        self.rival: np.ndarray | None = None
 
     def reset(self) -> None:
         """A new particle set: no history, no probation."""
@@ -362,9 +359,9 @@ class LostDetector:
         self._last = np.asarray(found.pose, np.float64).copy()
 
     def update(self, best: float, inliers: float, opinion, motion=(0.0, 0.0, 0.0)) -> tuple[bool, bool]:
-        """One converged update: its best badness and inlier share, the second opinion's callable and
-        ``motion``, the odometry ``(dx, dy, dyaw)`` since the previous update (it moves the last better
-        place to where this update should find it). Returns ``(lost, vetoed)``."""
+        """One converged update: its best badness and inlier share, the second opinion's callable (class
+        docstring) and ``motion``, the odometry ``(dx, dy, dyaw)`` since the previous update (it moves the
+        last better place to where this update should find it). Returns ``(lost, vetoed)``."""
         suspicious = self.watch.update(best, inliers)
         probation = self._probation > 0
         self._probation = max(0, self._probation - 1)
@@ -374,10 +371,11 @@ class LostDetector:
             return False, False
         if not self.second_opinion or opinion is None:
             return suspicious, False
-        self.rival = self._expected(motion)
+        # the rival to score again (where the last better place should be now: a place the prior does not
+        # offer at every scan is not lost between two updates), and the gain a better place must show
         doubt_only = not (suspicious or probation)
-        self.inlier_gain_now = self.doubt_inlier_gain if doubt_only else self.opinion_inlier_gain
-        found = opinion()
+        gain = self.doubt_inlier_gain if doubt_only else self.opinion_inlier_gain
+        found = opinion(self._expected(motion), gain)
         self._count(found, motion)
         if not suspicious:
             return self._hits >= self.probation_hits, False

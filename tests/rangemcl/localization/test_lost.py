@@ -158,26 +158,31 @@ def test_a_doubtful_update_asks_for_a_second_opinion_without_a_suspicion():
         place = np.array([10.0, 0.0, 0.0])
         calls, out = [], []
         for _ in range(2):
-            op = lambda p=place.copy(), c=calls: c.append(1) or Opinion(True, p, 0.1, 0.95, 400)  # noqa: E731
+
+            def op(rival, gain, p=place.copy(), c=calls):
+                c.append(rival)
+                return Opinion(True, p, 0.1, 0.95, 400)
+
             out.append(det.update(0.1, 0.55, op, motion))
             place = se2_compose(place, motion)
         assert [o[0] for o in out] == expected and det.watch.bad_updates == 0
         assert len(calls) == (2 if doubt else 0)
         # a doubtful update keeps scoring the last better place (moved with the odometry)
         if doubt:
-            assert np.allclose(det.rival, se2_compose(np.array([10.0, 0.0, 0.0]), motion))
+            assert calls[0] is None
+            assert np.allclose(calls[1], se2_compose(np.array([10.0, 0.0, 0.0]), motion))
     # a doubtful update asks its opinion for a clearer win than a suspicion or the probation does
     det = _detector(doubt_opinions=True)
     gains = []
-    det.update(0.1, 0.55, lambda: gains.append(det.inlier_gain_now) or None, motion)
+    det.update(0.1, 0.55, lambda rival, gain: gains.append(gain) or None, motion)
     det.probation_updates = 1
     det.start_probation()
-    det.update(0.1, 0.55, lambda: gains.append(det.inlier_gain_now) or None, motion)
+    det.update(0.1, 0.55, lambda rival, gain: gains.append(gain) or None, motion)
     assert gains == [det.doubt_inlier_gain, det.opinion_inlier_gain] and gains[0] > gains[1]
     # at the running level: no opinion asked
     det = _detector(doubt_opinions=True)
     calls = []
-    det.update(0.1, 0.9, lambda: calls.append(1) or Opinion(False, np.zeros(3), 0.5, 0.5, 1), motion)
+    det.update(0.1, 0.9, lambda *_: calls.append(1) or Opinion(False, np.zeros(3), 0.5, 0.5, 1), motion)
     assert calls == []
 
 
@@ -189,7 +194,7 @@ def test_a_suspicion_is_lost_only_when_one_place_keeps_fitting_better():
     results = []
     for _ in range(8):
         pose = np.array([*rng.uniform(-200, 200, 2), 0.0])
-        results.append(det.update(0.6, 0.3, lambda p=pose: Opinion(True, p, 0.3, 0.9, 400), motion))
+        results.append(det.update(0.6, 0.3, lambda *_, p=pose: Opinion(True, p, 0.3, 0.9, 400), motion))
     assert results[:2] == [(False, False), (False, True)]  # the second bad update makes the suspicion
     assert all(r == (False, True) for r in results[1:]) and det.vetoed_alarms == 1
     # one place that moves with the odometry: lost at its second confirmation
@@ -197,12 +202,14 @@ def test_a_suspicion_is_lost_only_when_one_place_keeps_fitting_better():
     place = np.array([50.0, -20.0, 1.0])
     out = []
     for _ in range(4):
-        out.append(det.update(0.6, 0.3, lambda p=place.copy(): Opinion(True, p, 0.3, 0.9, 400), motion))
+        out.append(det.update(0.6, 0.3, lambda *_, p=place.copy(): Opinion(True, p, 0.3, 0.9, 400), motion))
         place = se2_compose(place, motion)
     assert out[0] == (False, False) and out[1] == (False, True) and out[2] == (True, False)
     # no better place: vetoed until the suspicion has lasted max_vetoed_updates
     det = _detector(max_vetoed_updates=5)
-    out = [det.update(0.6, 0.3, lambda: Opinion(False, np.zeros(3), 0.7, 0.2, 400), motion) for _ in range(5)]
+    out = [
+        det.update(0.6, 0.3, lambda *_: Opinion(False, np.zeros(3), 0.7, 0.2, 400), motion) for _ in range(5)
+    ]
     assert [o[0] for o in out] == [False, False, False, False, True]
 
 
@@ -214,14 +221,16 @@ def test_probation_undoes_a_convergence_when_a_better_place_is_confirmed():
     place = np.array([10.0, 0.0, 0.0])
     out = []
     for _ in range(2):
-        out.append(det.update(0.1, 0.9, lambda p=place.copy(): Opinion(True, p, 0.1, 0.95, 400), motion)[0])
+        out.append(
+            det.update(0.1, 0.9, lambda *_, p=place.copy(): Opinion(True, p, 0.1, 0.95, 400), motion)[0]
+        )
         place = se2_compose(place, motion)
     assert out == [False, True]
     # after the probation, an unsuspicious filter asks nobody
     det.start_probation()
     calls = []
     for _ in range(5):
-        det.update(0.1, 0.9, lambda: calls.append(1) or Opinion(False, np.zeros(3), 0.5, 0.5, 1), motion)
+        det.update(0.1, 0.9, lambda *_: calls.append(1) or Opinion(False, np.zeros(3), 0.5, 0.5, 1), motion)
     assert len(calls) == 3
 
 
@@ -232,14 +241,18 @@ def test_one_update_without_the_rival_does_not_undo_its_confirmation():
     better = [True, True, False, True]  # the suspicion starts at the second update
     out = []
     for b in better:
-        out.append(det.update(0.6, 0.3, lambda p=place.copy(), b=b: Opinion(b, p, 0.3, 0.9, 400), motion)[0])
+        out.append(
+            det.update(0.6, 0.3, lambda *_, p=place.copy(), b=b: Opinion(b, p, 0.3, 0.9, 400), motion)[0]
+        )
         place = se2_compose(place, motion)
     assert out == [False, False, False, True]
     # three misses in a row drop the rival: the next better place starts a new count
     det = _detector()
     out = []
     for b in [True, True, False, False, False, True]:
-        out.append(det.update(0.6, 0.3, lambda p=place.copy(), b=b: Opinion(b, p, 0.3, 0.9, 400), motion)[0])
+        out.append(
+            det.update(0.6, 0.3, lambda *_, p=place.copy(), b=b: Opinion(b, p, 0.3, 0.9, 400), motion)[0]
+        )
         place = se2_compose(place, motion)
     assert not any(out)
 
