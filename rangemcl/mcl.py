@@ -160,9 +160,11 @@ class RecoverySettings:
     history: int = 50  # converged updates remembered for the median
     second_opinion: bool = True  # a suspicion is lost only when the place prior's best places for the
     # scan (rangemcl.localization.lost) hold one that explains it clearly better; else it is vetoed
-    opinion_top: int = 30  # ... those places (at least separation_m from the estimate) ...
+    opinion_top: int = 100  # ... those places (at least separation_m from the estimate; 30 before
+    # revision 11) ...
     opinion_per_place: int = 16  # ... each with this many particles over its cell
-    polish_places: int = 8  # ... then the best this many places get a second look (0: none, revision 9):
+    polish_places: int = 16  # ... then the best this many places get a second look (0: none, revision 9;
+    # 8 in revision 10):
     polish_per_place: int = 48  # ... this many particles around each one's best particle ...
     polish_sigma_xy_m: float = 0.6  # ... spread this much (normal; three rounds, each with half the last
     polish_sigma_yaw_deg: float = 3.0  # ... spread) and this much in yaw (revision 10; localization.lost)
