@@ -317,7 +317,14 @@ def test_over_a_map_within_a_budget_the_second_opinion_finds_a_place_whose_tiles
     wrong = path[0] + [0.0, 100.0, 0.0]  # the same spot of street B
 
     def run(mesh_map, caster):
-        loc = build_localizer(mesh_map, twin_settings(), seed=7, caster=caster)
+        settings = twin_settings()
+        # the second opinion of revision 10 (30 places, 8 looked at again): the wider one of revision 11
+        # also finds street B driven the other way 25 m on, which fits the scans better than the filter's
+        # pose on B, and declares the filter lost without street A's tiles, so that this test would no
+        # longer show what consulting the view does
+        settings.recovery.opinion_top = 30
+        settings.recovery.polish_places = 8
+        loc = build_localizer(mesh_map, settings, seed=7, caster=caster)
         loc.start_at(wrong)
         loc.lost.start_probation()
         for k in range(len(path)):
