@@ -173,6 +173,11 @@ class RecoverySettings:
     doubt_inlier_gain: float = 0.25  # ... where a better place must gain this much of the inlier share
     opinion_inlier_gain: float = 0.15  # better: inlier share higher by this (and a lower residual)
     opinion_badness_ratio: float = 0.7  # ... or, for models without an inlier share, badness below this x
+    # the filter's: where the filter's inlier share leaves no room for the gain (above 1 - gain; the
+    # MQ-8's far rays saturate it at a wrong place as at the true one), a place with as many inliers
+    # (within 0.02) and a badness below this x the filter's is better as well (None: off, the default;
+    # an experiment of session 15, not measured on the suites)
+    saturated_badness_ratio: float | None = None
     opinion_min_range_m: float = 5.0  # the opinion compares rays measured at least this far (a
     # vehicle alongside hid 63 % of the structure rays at 2.5 m on the town_medium suite, and a far-off
     # place fit those near rays better than the true one)
@@ -359,6 +364,11 @@ class LocalizerSettings:
                 raise InputError(f"{where}: {key} must be >= 0, got {value}")
         if not math.isfinite(m.gyro_bias_deg_s):
             raise InputError(f"{where}: motion.gyro_bias_deg_s must be finite, got {m.gyro_bias_deg_s}")
+        sat = r.saturated_badness_ratio
+        if sat is not None and not (math.isfinite(sat) and 0 < sat < 1):
+            raise InputError(
+                f"{where}: recovery.saturated_badness_ratio must be in (0, 1) or null, got {sat}"
+            )
         for key in ("prior_share", "inject_share", "inject_below_share", "inject_weight"):
             if getattr(self.init, key) is not None and not 0 <= getattr(self.init, key) <= 1:
                 raise InputError(f"{where}: init.{key} must be in [0, 1], got {getattr(self.init, key)}")
@@ -513,6 +523,7 @@ def build_localizer(
             polish_sigma_yaw_deg=r.polish_sigma_yaw_deg,
             opinion_inlier_gain=r.opinion_inlier_gain,
             opinion_badness_ratio=r.opinion_badness_ratio,
+            saturated_badness_ratio=r.saturated_badness_ratio,
             opinion_min_range_m=r.opinion_min_range_m,
             max_vetoed_updates=r.max_vetoed_updates,
             probation_updates=r.probation_updates,

@@ -822,4 +822,5 @@ class MonteCarloLocalizer:
             inlier_gain=inlier_gain,
             polish=polish,
             badness_ratio=lost.opinion_badness_ratio,
+            saturated_ratio=lost.saturated_badness_ratio,
         )

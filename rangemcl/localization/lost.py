@@ -208,13 +208,17 @@ def second_opinion(
     inlier_gain: float = 0.15,
     badness_ratio: float = 0.7,
     polish: Polish | None = None,
+    saturated_ratio: float | None = None,
 ) -> Opinion:
     """Score ``candidates`` ``(M, 3)`` with ``score(particles) -> (badness (M,), inliers (M,) or None)``
     and decide whether the best of those farther than ``min_distance_m`` from ``estimate`` explains the
     scan clearly better than the filter's best particle: its inlier share higher by ``inlier_gain`` and
     its badness lower (models with an inlier share), or its badness below ``badness_ratio`` x the
     filter's (models without). With ``polish`` the best few places are searched again around their best
-    particle (:class:`Polish`) before the decision."""
+    particle (:class:`Polish`) before the decision. With ``saturated_ratio``, where the filter's inlier
+    share leaves no room for the gain (``current_inliers + inlier_gain > 1``), the place with the least
+    badness among those with at least the filter's inlier share (less 0.02) is better when its badness is
+    below ``saturated_ratio`` x the filter's."""
     cand = np.asarray(candidates, np.float64).reshape(-1, 3)
     far = np.hypot(cand[:, 0] - estimate[0], cand[:, 1] - estimate[1]) > min_distance_m
     cand = cand[far]
@@ -236,6 +240,12 @@ def second_opinion(
         inl = np.asarray(inl, np.float64)
         j = int(np.lexsort((bad, -inl))[0])  # the most inliers, then the least badness
         better = bool(inl[j] >= current_inliers + inlier_gain and bad[j] < current_badness)
+        if not better and saturated_ratio is not None and current_inliers + inlier_gain > 1.0:
+            ok = np.flatnonzero(inl >= current_inliers - 0.02)
+            if len(ok):
+                k = int(ok[np.argmin(bad[ok])])
+                if bad[k] < saturated_ratio * current_badness:
+                    return Opinion(True, cand[k], float(bad[k]), float(inl[k]), len(cand))
         return Opinion(better, cand[j], float(bad[j]), float(inl[j]), len(cand))
     j = int(np.argmin(bad))
     better = bool(bad[j] < badness_ratio * current_badness)
@@ -268,6 +278,7 @@ class LostDetector:
         polish_sigma_yaw_deg: float = 3.0,
         opinion_inlier_gain: float = 0.15,
         opinion_badness_ratio: float = 0.7,
+        saturated_badness_ratio: float | None = None,
         opinion_min_range_m: float = 5.0,
         max_vetoed_updates: int = 30,
         probation_updates: int = 10,
@@ -291,6 +302,9 @@ class LostDetector:
         self.polish_sigma = (float(polish_sigma_xy_m), float(polish_sigma_yaw_deg))
         self.opinion_inlier_gain = float(opinion_inlier_gain)
         self.opinion_badness_ratio = float(opinion_badness_ratio)
+        self.saturated_badness_ratio = (
+            None if saturated_badness_ratio is None else float(saturated_badness_ratio)
+        )
         self.opinion_min_range_m = float(opinion_min_range_m)
         self.max_vetoed_updates = int(max_vetoed_updates)
         self.probation_updates = int(probation_updates)

@@ -271,6 +271,12 @@ def test_settings_are_checked(world):
         s.check()
     s.init.inject_weight = None  # the injected particles' count share
     s.check()
+    for bad in (0.0, 1.0, float("nan")):
+        s.recovery.saturated_badness_ratio = bad
+        with pytest.raises(InputError, match="saturated_badness_ratio"):
+            s.check()
+    s.recovery.saturated_badness_ratio = 0.75
+    s.check()
     loc = build_localizer(m, LocalizerSettings(), caster=caster)
     with pytest.raises(InputError, match="no particles"):
         loc.step(np.zeros(3), None)

@@ -105,6 +105,34 @@ def test_the_second_opinion_finds_the_true_place_only_when_the_filter_is_elsewhe
     assert not op.better
 
 
+def test_where_the_inlier_share_saturates_residuals_decide_only_when_asked():
+    """A sensor whose far rays nearly all agree at a wrong place as at the true one (the MQ-8 on
+    town_medium: 0.91-0.99 against 0.99-1.0): the inlier gain cannot be passed; with
+    ``saturated_ratio`` a place with as many inliers and a much smaller residual is better, and one with
+    a residual only a little smaller is not."""
+    rng = np.random.default_rng(2)
+    truth = np.array([50.0, 20.0, 0.3])
+    places = np.vstack([truth[:2] + np.array([0.2, -0.1]), rng.uniform(-200, 200, (29, 2))])
+    yaws = np.concatenate([[truth[2]], rng.uniform(-3, 3, 29)])
+    cand = candidate_particles(places, yaws, 16, 0.5, math.radians(0.5), rng)
+
+    def score(p):  # every place saturates the inlier share; the residual grows away from the truth
+        d = np.hypot(p[:, 0] - truth[0], p[:, 1] - truth[1]) + 5.0 * np.abs(
+            np.angle(np.exp(1j * (p[:, 2] - truth[2])))
+        )
+        return 0.15 + 0.01 * d, np.full(len(p), 1.0)
+
+    wrong = np.array([130.0, 20.0, 0.3])
+    assert not second_opinion(score, wrong, 0.45, 0.95, cand, min_distance_m=5.0).better
+    op = second_opinion(score, wrong, 0.45, 0.95, cand, min_distance_m=5.0, saturated_ratio=0.75)
+    assert op.better and np.hypot(*(op.pose[:2] - truth[:2])) < 1.0
+    # the filter's residual only a little above the best place's: not better
+    assert not second_opinion(score, wrong, 0.19, 0.95, cand, min_distance_m=5.0, saturated_ratio=0.75).better
+    # room for the gain (the filter's inlier share well below 1): the usual test alone decides
+    op = second_opinion(score, wrong, 0.45, 0.7, cand, min_distance_m=5.0, saturated_ratio=0.75)
+    assert op.better and op.inliers == 1.0
+
+
 def test_a_second_look_around_the_best_places_finds_a_sharply_peaked_true_pose():
     """A sensor whose evidence peaks within a few decimetres and a degree (the MQ-8's far rays): the
     candidates over the true place's cell all miss the peak; the polish finds it."""
