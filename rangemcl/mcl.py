@@ -173,10 +173,11 @@ class RecoverySettings:
     doubt_inlier_gain: float = 0.25  # ... where a better place must gain this much of the inlier share
     opinion_inlier_gain: float = 0.15  # better: inlier share higher by this (and a lower residual)
     opinion_badness_ratio: float = 0.7  # ... or, for models without an inlier share, badness below this x
-    # the filter's: where the filter's inlier share leaves no room for the gain (above 1 - gain; the
-    # MQ-8's far rays saturate it at a wrong place as at the true one), a place with as many inliers
-    # (within 0.02) and a badness below this x the filter's is better as well (None: off, the default;
-    # an experiment of session 15, not measured on the suites)
+    # the filter's
+    # where the filter's inlier share leaves no room for the gain (above 1 - gain; the MQ-8's far rays
+    # saturate it at a wrong place as at the true one), a place with as many inliers (within 0.02) and a
+    # badness below this x the filter's is better as well. None: off, the default (an experiment: both
+    # towns' sensors suites with 0.75 in docs/results/v11; not adopted, the particles suites not run)
     saturated_badness_ratio: float | None = None
     opinion_min_range_m: float = 5.0  # the opinion compares rays measured at least this far (a
     # vehicle alongside hid 63 % of the structure rays at 2.5 m on the town_medium suite, and a far-off
