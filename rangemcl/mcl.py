@@ -179,6 +179,13 @@ class RecoverySettings:
     # badness below this x the filter's is better as well. None: off, the default (an experiment: both
     # towns' sensors suites with 0.75 in docs/results/v11; not adopted, the particles suites not run)
     saturated_badness_ratio: float | None = None
+    # a better place must also explain the recent past: its mean inlier share over the far rays of the
+    # previous history_updates updates' scans (moved back along the odometry, polished like the opinion's
+    # places) at least the filter's best particle's less history_margin (a street that changed since the
+    # mapping drive fits the true pose badly now, not over the last updates). 0: off, the default (an
+    # experiment, docs/results/v12)
+    history_updates: int = 0
+    history_margin: float = 0.05
     opinion_min_range_m: float = 5.0  # the opinion compares rays measured at least this far (a
     # vehicle alongside hid 63 % of the structure rays at 2.5 m on the town_medium suite, and a far-off
     # place fit those near rays better than the true one)
@@ -365,6 +372,12 @@ class LocalizerSettings:
                 raise InputError(f"{where}: {key} must be >= 0, got {value}")
         if not math.isfinite(m.gyro_bias_deg_s):
             raise InputError(f"{where}: motion.gyro_bias_deg_s must be finite, got {m.gyro_bias_deg_s}")
+        if not (isinstance(r.history_updates, int) and r.history_updates >= 0):
+            raise InputError(
+                f"{where}: recovery.history_updates must be an integer >= 0, got {r.history_updates}"
+            )
+        if not (math.isfinite(r.history_margin) and 0 <= r.history_margin <= 1):
+            raise InputError(f"{where}: recovery.history_margin must be in [0, 1], got {r.history_margin}")
         sat = r.saturated_badness_ratio
         if sat is not None and not (math.isfinite(sat) and 0 < sat < 1):
             raise InputError(
@@ -525,6 +538,8 @@ def build_localizer(
             opinion_inlier_gain=r.opinion_inlier_gain,
             opinion_badness_ratio=r.opinion_badness_ratio,
             saturated_badness_ratio=r.saturated_badness_ratio,
+            history_updates=r.history_updates,
+            history_margin=r.history_margin,
             opinion_min_range_m=r.opinion_min_range_m,
             max_vetoed_updates=r.max_vetoed_updates,
             probation_updates=r.probation_updates,

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -46,7 +47,14 @@ from rangemcl.localization.hypotheses import (
     resample_by_cluster,
     summarize,
 )
-from rangemcl.localization.lost import LostDetector, Opinion, Polish, candidate_particles, second_opinion
+from rangemcl.localization.lost import (
+    LostDetector,
+    Opinion,
+    Polish,
+    candidate_particles,
+    history_fit,
+    second_opinion,
+)
 from rangemcl.localization.place_prior import (
     PlacePrior,
     PriorParams,
@@ -67,7 +75,7 @@ from rangemcl.particles import (
     pose_estimate,
     sample_motion,
 )
-from rangemcl.se2 import odometry_increment, rotation_roll_pitch, se2_compose, wrap_angle
+from rangemcl.se2 import odometry_increment, rotation_roll_pitch, se2_compose, se2_inverse, wrap_angle
 
 HELD_YAW_RAD = math.radians(20.0)  # a fresh prior particle this close in yaw to a held one (and within
 # cluster_m) is a place the search holds already
@@ -271,6 +279,12 @@ class MonteCarloLocalizer:
         self._leader: np.ndarray | None = None  # per particle: descends from the last leading cluster
         self._moved_m = 0.0
         self._motion = np.zeros(3)
+        # the recent updates' rays (None: no scan) and odometry since the update before, oldest first, for
+        # the second opinion's look at the past (LostDetector.history_updates; empty when that is off)
+        keep = lost.history_updates + 1 if lost is not None and lost.history_updates > 0 else 0
+        self._recent: deque = deque(maxlen=max(1, keep))
+        self._keep_recent = keep > 0
+        self.last_history = (math.nan, math.nan)  # the last look at the past: (rival's fit, own fit)
         self.hypotheses: list = []  # the search's clusters at the last update, largest share first
         self.refinements = 0  # refinements taken ...
         self.refused_refinements = 0  # ... and refused (outside the cloud's spread)
@@ -484,6 +498,8 @@ class MonteCarloLocalizer:
                     sensor_height_m=self.sensor_height_m,
                 )
             self._move()
+            if self._keep_recent:
+                self._recent.append((rays, self._motion.copy()))
             if rays is None:
                 info["skipped_scan"] = True
             else:
@@ -812,7 +828,7 @@ class MonteCarloLocalizer:
 
         own_bad, own_inl = score(self.particles)
         j = int(np.argmin(own_bad))
-        return second_opinion(
+        found = second_opinion(
             score,
             self.last_estimate,
             float(own_bad[j]),
@@ -824,3 +840,44 @@ class MonteCarloLocalizer:
             badness_ratio=lost.opinion_badness_ratio,
             saturated_ratio=lost.saturated_badness_ratio,
         )
+        if found.better and self._keep_recent and own_inl is not None:
+            own = self.particles[j].copy()
+            rival_fit = history_fit(self._history_inliers, found.pose, polish)
+            own_fit = history_fit(self._history_inliers, own, polish)
+            self.last_history = (rival_fit, own_fit)
+            if math.isfinite(rival_fit) and rival_fit < own_fit - lost.history_margin:
+                found.better = False  # (NaN own_fit: the comparison is False, the place stays better)
+                lost.refuted += 1
+        return found
+
+    def _history_inliers(self, poses: np.ndarray) -> np.ndarray:
+        """Each pose's ``(M, 3)`` mean inlier share over the far rays of the previous updates' scans (up to
+        ``history_updates``), the pose moved back along the odometry to each of them; NaN with fewer than
+        half of them to compare (no scan, too few far rays)."""
+        p = np.asarray(poses, np.float64).reshape(-1, 3)
+        total = np.zeros(len(p))
+        count = 0
+        entries = list(self._recent)
+        min_range = self.lost.opinion_min_range_m
+        for i in range(len(entries) - 1, 0, -1):
+            p = se2_compose(p, se2_inverse(entries[i][1]))  # the pose at the update before
+            rays = entries[i - 1][0]
+            if rays is None:
+                continue
+            far = rays.ranges >= min_range
+            if far.sum() < max(20, 0.1 * len(far)):
+                continue
+            sub = ScanRays(
+                rays.directions[far],
+                rays.ranges[far],
+                rays.valid_points,
+                None if rays.structure is None else rays.structure[far],
+            )
+            self.scorer.score(sub, p, self.sensor_z(p[:, :2]))
+            if self.scorer.last_inliers is None:
+                return np.full(len(p), math.nan)
+            total += self.scorer.last_inliers
+            count += 1
+        if count == 0 or count < 0.5 * self.lost.history_updates:
+            return np.full(len(p), math.nan)
+        return total / count

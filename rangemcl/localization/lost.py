@@ -252,6 +252,26 @@ def second_opinion(
     return Opinion(better, cand[j], float(bad[j]), math.nan, len(cand))
 
 
+def history_fit(score_history, pose: np.ndarray, polish: Polish) -> float:
+    """How well the place at ``pose`` ``(3,)`` explains the recent past: ``score_history(poses (M, 3))``
+    gives each pose's mean inlier share over the previous updates' scans (each pose moved back along the
+    odometry; NaN when there is nothing to compare), and the best of ``pose`` and ``polish.rounds``
+    rounds of :meth:`Polish.around` it (each around the best so far, with half the spread) is returned:
+    a place found within a metre or two of where it should be is compared at its best, as the filter's
+    own is."""
+    best_pose = np.asarray(pose, np.float64).reshape(1, 3)
+    best = float(np.asarray(score_history(best_pose), np.float64)[0])
+    if not math.isfinite(best):
+        return math.nan
+    for r in range(polish.rounds if polish.places > 0 else 0):
+        extra = polish.around(best_pose, 0.5**r)
+        fit = np.asarray(score_history(extra), np.float64)
+        j = int(np.argmax(fit))
+        if fit[j] > best:
+            best, best_pose = float(fit[j]), extra[j : j + 1]
+    return best
+
+
 class LostDetector:
     """The converged filter's lost decision (module docstring): the :class:`SignalWatch`, the second
     opinion's settings, and the probation after each convergence.
@@ -289,8 +309,13 @@ class LostDetector:
         doubt_ratio: float = 0.8,
         doubt_opinions: bool = True,
         doubt_inlier_gain: float = 0.25,
+        history_updates: int = 0,
+        history_margin: float = 0.05,
     ):
         self.watch = watch
+        self.history_updates = int(history_updates)
+        self.history_margin = float(history_margin)
+        self.refuted = 0  # better places that did not explain the recent past as well (history_fit)
         self.doubt_ratio = float(doubt_ratio)
         self.doubt_opinions = bool(doubt_opinions)
         self.doubt_inlier_gain = float(doubt_inlier_gain)

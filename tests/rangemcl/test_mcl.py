@@ -160,6 +160,30 @@ def test_true_pose_scores_above_perturbed_poses_through_the_filter(world):
     assert d[0] < 0.05 and (d[1:] > d[0] + 0.05).all()
 
 
+def test_the_look_at_the_past_moves_poses_back_along_the_odometry(world):
+    """recovery.history_updates: the filter keeps the recent updates' rays and odometry; the true pose of
+    now, moved back along the odometry, fits each past scan (nearly all far rays inliers), a pose 3 m
+    to the side fits them clearly worse, and with too few past scans there is no verdict (NaN)."""
+    town, caster, m, path, geo = world
+    s = small_settings()
+    s.recovery.history_updates = 20
+    loc = build_localizer(m, s, seed=3, caster=caster)
+    loc.start_at(path[0])
+    for k in range(1, 6):
+        loc.step(se2_between(path[k - 1], path[k]), scan_at(town, caster, geo, path[k]))
+    assert np.isnan(loc._history_inliers(path[5][None])).all()  # 5 past scans of the 20: no verdict
+    for k in range(6, 40):
+        loc.step(se2_between(path[k - 1], path[k]), scan_at(town, caster, geo, path[k]))
+    assert len(loc._recent) == 21
+    fit = loc._history_inliers(np.array([path[39], path[39] + [0.0, 3.0, 0.0], path[39] + [0.0, 0.0, 0.1]]))
+    assert fit[0] > 0.9 and fit[1] < fit[0] - 0.2 and fit[2] < fit[0] - 0.2
+    # off (the default): nothing kept
+    off = build_localizer(m, small_settings(), seed=3, caster=caster)
+    off.start_at(path[0])
+    off.step(se2_between(path[0], path[1]), scan_at(town, caster, geo, path[1]))
+    assert len(off._recent) == 0
+
+
 def test_prepare_rays_deskews_with_the_frame_motion():
     """Points fired from a moving sensor, de-skewed, land where a sensor at the stamp pose sees them."""
     rng = np.random.default_rng(0)

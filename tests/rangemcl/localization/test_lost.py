@@ -15,6 +15,7 @@ from rangemcl.localization.lost import (
     Polish,
     SignalWatch,
     candidate_particles,
+    history_fit,
     second_opinion,
 )
 from rangemcl.se2 import se2_compose
@@ -160,6 +161,28 @@ def test_a_second_look_around_the_best_places_finds_a_sharply_peaked_true_pose()
     assert seeds[:, 0].tolist() == [0.0, 10.0]
     op = second_opinion(score, truth, 0.1, 0.99, cand, min_distance_m=5.0, polish=polish)
     assert np.hypot(*(op.pose[:2] - truth[:2])) > 5.0
+
+
+def test_the_look_at_the_past_compares_each_place_at_its_best():
+    """history_fit: a place found 1 m and 2 degrees from a sharply peaked true pose is scored at its best
+    (the polish finds the peak), a place that fits nowhere near stays low, and no evidence is NaN."""
+    truth = np.array([50.0, 20.0, 0.3])
+
+    def fit(p):  # the mean inlier share over past scans of poses at the current update
+        d = np.hypot(p[:, 0] - truth[0], p[:, 1] - truth[1]) + 10.0 * np.abs(
+            np.angle(np.exp(1j * (p[:, 2] - truth[2])))
+        )
+        return 0.5 + 0.45 * np.exp(-d / 0.3)
+
+    polish = Polish(places=1, per_place=48, sigma_xy_m=0.6, sigma_yaw_deg=3.0, rng=np.random.default_rng(7))
+    near = truth + np.array([0.8, -0.6, math.radians(2.0)])
+    assert fit(near[None])[0] < 0.6  # as found: hardly better than anywhere
+    assert history_fit(fit, near, polish) > 0.75  # near its best
+    assert history_fit(fit, np.array([130.0, 20.0, 0.3]), polish) < 0.55
+    assert math.isnan(history_fit(lambda p: np.full(len(p), math.nan), near, polish))
+    # no polish: the place as it is
+    none = Polish(places=0, per_place=48, sigma_xy_m=0.6, sigma_yaw_deg=3.0, rng=np.random.default_rng(7))
+    assert history_fit(fit, near, none) == pytest.approx(fit(near[None])[0])
 
 
 def test_no_candidate_far_enough_is_no_opinion():
