@@ -186,6 +186,9 @@ class RecoverySettings:
     # experiment, docs/results/v12)
     history_updates: int = 0
     history_margin: float = 0.05
+    history_min_inliers: float = 0.5  # ... asked only while the filter's best particle still fits at least
+    # this share of the far rays (below it, a teleport rather than a changed street: its past would hold
+    # a true new place back)
     opinion_min_range_m: float = 5.0  # the opinion compares rays measured at least this far (a
     # vehicle alongside hid 63 % of the structure rays at 2.5 m on the town_medium suite, and a far-off
     # place fit those near rays better than the true one)
@@ -376,8 +379,9 @@ class LocalizerSettings:
             raise InputError(
                 f"{where}: recovery.history_updates must be an integer >= 0, got {r.history_updates}"
             )
-        if not (math.isfinite(r.history_margin) and 0 <= r.history_margin <= 1):
-            raise InputError(f"{where}: recovery.history_margin must be in [0, 1], got {r.history_margin}")
+        for key in ("history_margin", "history_min_inliers"):
+            if not (math.isfinite(getattr(r, key)) and 0 <= getattr(r, key) <= 1):
+                raise InputError(f"{where}: recovery.{key} must be in [0, 1], got {getattr(r, key)}")
         sat = r.saturated_badness_ratio
         if sat is not None and not (math.isfinite(sat) and 0 < sat < 1):
             raise InputError(
@@ -540,6 +544,7 @@ def build_localizer(
             saturated_badness_ratio=r.saturated_badness_ratio,
             history_updates=r.history_updates,
             history_margin=r.history_margin,
+            history_min_inliers=r.history_min_inliers,
             opinion_min_range_m=r.opinion_min_range_m,
             max_vetoed_updates=r.max_vetoed_updates,
             probation_updates=r.probation_updates,

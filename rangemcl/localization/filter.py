@@ -840,7 +840,12 @@ class MonteCarloLocalizer:
             badness_ratio=lost.opinion_badness_ratio,
             saturated_ratio=lost.saturated_badness_ratio,
         )
-        if found.better and self._keep_recent and own_inl is not None:
+        if (
+            found.better
+            and self._keep_recent
+            and own_inl is not None
+            and float(own_inl[j]) >= lost.history_min_inliers
+        ):
             own = self.particles[j].copy()
             rival_fit = history_fit(self._history_inliers, found.pose, polish)
             own_fit = history_fit(self._history_inliers, own, polish)

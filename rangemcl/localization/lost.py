@@ -311,10 +311,12 @@ class LostDetector:
         doubt_inlier_gain: float = 0.25,
         history_updates: int = 0,
         history_margin: float = 0.05,
+        history_min_inliers: float = 0.5,
     ):
         self.watch = watch
         self.history_updates = int(history_updates)
         self.history_margin = float(history_margin)
+        self.history_min_inliers = float(history_min_inliers)
         self.refuted = 0  # better places that did not explain the recent past as well (history_fit)
         self.doubt_ratio = float(doubt_ratio)
         self.doubt_opinions = bool(doubt_opinions)
