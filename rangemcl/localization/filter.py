@@ -791,15 +791,9 @@ class MonteCarloLocalizer:
         within a budget (:meth:`rangemcl.mapping.view.MapView.consult`) the places whose tiles are not
         held yet are asked for and left out of this opinion."""
         lost = self.lost
-        far = rays.ranges >= lost.opinion_min_range_m
-        if far.sum() < max(20, 0.1 * len(far)):
+        sub = self._far_rays(rays)
+        if sub is None:
             return None
-        sub = ScanRays(
-            rays.directions[far],
-            rays.ranges[far],
-            rays.valid_points,
-            None if rays.structure is None else rays.structure[far],
-        )
         prior = self.prior_for(levelled)
         xy, yaw, _cost, known = prior.candidates(
             levelled, self.sensor_height_m, lost.opinion_top, self._elevations(prior, levelled)
@@ -863,21 +857,11 @@ class MonteCarloLocalizer:
         total = np.zeros(len(p))
         count = 0
         entries = list(self._recent)
-        min_range = self.lost.opinion_min_range_m
         for i in range(len(entries) - 1, 0, -1):
             p = se2_compose(p, se2_inverse(entries[i][1]))  # the pose at the update before
-            rays = entries[i - 1][0]
-            if rays is None:
+            sub = None if entries[i - 1][0] is None else self._far_rays(entries[i - 1][0])
+            if sub is None:
                 continue
-            far = rays.ranges >= min_range
-            if far.sum() < max(20, 0.1 * len(far)):
-                continue
-            sub = ScanRays(
-                rays.directions[far],
-                rays.ranges[far],
-                rays.valid_points,
-                None if rays.structure is None else rays.structure[far],
-            )
             self.scorer.score(sub, p, self.sensor_z(p[:, :2]))
             if self.scorer.last_inliers is None:
                 return np.full(len(p), math.nan)
@@ -886,3 +870,16 @@ class MonteCarloLocalizer:
         if count == 0 or count < 0.5 * self.lost.history_updates:
             return np.full(len(p), math.nan)
         return total / count
+
+    def _far_rays(self, rays: ScanRays) -> ScanRays | None:
+        """The rays measured at least ``opinion_min_range_m`` away (what the second opinion compares), or
+        None when they are too few (under 20, or under a tenth of the rays)."""
+        far = rays.ranges >= self.lost.opinion_min_range_m
+        if far.sum() < max(20, 0.1 * len(far)):
+            return None
+        return ScanRays(
+            rays.directions[far],
+            rays.ranges[far],
+            rays.valid_points,
+            None if rays.structure is None else rays.structure[far],
+        )

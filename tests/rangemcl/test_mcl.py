@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from rangemcl import meshgen
+from rangemcl.checkpoint import restore_state, save_state
 from rangemcl.dataset import SequenceWriter
 from rangemcl.errors import InputError
 from rangemcl.evaluate import evaluate_results, localization_metrics
@@ -160,7 +161,7 @@ def test_true_pose_scores_above_perturbed_poses_through_the_filter(world):
     assert d[0] < 0.05 and (d[1:] > d[0] + 0.05).all()
 
 
-def test_the_look_at_the_past_moves_poses_back_along_the_odometry(world):
+def test_the_look_at_the_past_moves_poses_back_along_the_odometry(world, tmp_path):
     """recovery.history_updates: the filter keeps the recent updates' rays and odometry; the true pose of
     now, moved back along the odometry, fits each past scan (nearly all far rays inliers), a pose 3 m
     to the side fits them clearly worse, and with too few past scans there is no verdict (NaN)."""
@@ -177,6 +178,12 @@ def test_the_look_at_the_past_moves_poses_back_along_the_odometry(world):
     assert len(loc._recent) == 21
     fit = loc._history_inliers(np.array([path[39], path[39] + [0.0, 3.0, 0.0], path[39] + [0.0, 0.0, 0.1]]))
     assert fit[0] > 0.9 and fit[1] < fit[0] - 0.2 and fit[2] < fit[0] - 0.2
+    # a checkpoint (rangemcl localize --resume) holds the kept updates: the same verdicts after a restore
+    save_state(tmp_path / "state.npz", {"filter": loc})
+    again = build_localizer(m, s, seed=3, caster=caster)
+    restore_state(tmp_path / "state.npz", {"filter": again})
+    assert again._recent.maxlen == 21 and len(again._recent) == 21
+    assert np.array_equal(again._history_inliers(path[39][None]), fit[:1])
     # off (the default): nothing kept
     off = build_localizer(m, small_settings(), seed=3, caster=caster)
     off.start_at(path[0])
