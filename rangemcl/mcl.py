@@ -176,15 +176,15 @@ class RecoverySettings:
     # the filter's
     # where the filter's inlier share leaves no room for the gain (above 1 - gain; the MQ-8's far rays
     # saturate it at a wrong place as at the true one), a place with as many inliers (within 0.02) and a
-    # badness below this x the filter's is better as well. None: off, the default (an experiment: both
-    # towns' sensors suites with 0.75 in docs/results/v11; not adopted, the particles suites not run)
-    saturated_badness_ratio: float | None = None
+    # badness below this x the filter's is better as well (revision 12; None: off, revisions 11 and before;
+    # docs/results/v11 and v12)
+    saturated_badness_ratio: float | None = 0.75
     # a better place must also explain the recent past: its mean inlier share over the far rays of the
     # previous history_updates updates' scans (moved back along the odometry, polished like the opinion's
     # places) at least the filter's best particle's less history_margin (a street that changed since the
-    # mapping drive fits the true pose badly now, not over the last updates). 0: off, the default (an
-    # experiment, docs/results/v12)
-    history_updates: int = 0
+    # mapping drive fits the true pose badly now, not over the last updates; revision 12, 0: off;
+    # docs/results/v12)
+    history_updates: int = 30
     history_margin: float = 0.05
     history_min_inliers: float = 0.5  # ... asked only while the filter's best particle still fits at least
     # this share of the far rays (below it, a teleport rather than a changed street: its past would hold

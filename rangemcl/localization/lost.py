@@ -40,6 +40,21 @@ the suspicion's half of the level (the MQ-8 from start 700 on `town_large`: 0.46
 of 0.9 after the probation, while the true pose reached 0.98). There a better place must gain
 ``doubt_inlier_gain`` (0.25) of the far rays' inlier share, not 0.15: an MQ-8 at the true pose, 0.80-0.88
 in a changed street, met a place 307 m off whose second look reached 0.96-0.99 (from start 622).
+
+Revision 12 adds two rules to :func:`second_opinion`'s verdict (docs/results/v12):
+
+* **where the inlier share saturates** (``saturated_ratio``): an MQ-8 at a wrong place kept 91-99 % of
+  its far rays as inliers while the true pose had 99-100 %, so no place could gain 0.15; there a place
+  with as many inliers and a mean residual below 0.75 x the filter's is better too (the true pose's was
+  half the wrong place's);
+* **a better place must explain the recent past** (:func:`history_fit`, ``history_updates``): in a street
+  that changed since the mapping drive the true pose fit 63-75 % of the far rays and a place 236 m off
+  93-97 %, at two updates in a row; over the previous 30 updates' scans (each place moved back along the
+  odometry) the true pose fit 0.90-0.92 and that place 0.66-0.78, while at a wrong convergence the true
+  place fit the past better than the wrong one (0.98 against 0.88). A place that fits the past worse
+  than the filter's own by more than ``history_margin`` is not better. Asked only while the filter's
+  own far rays still fit ``history_min_inliers`` (half): a car that jumped (the kidnap suite) fits
+  nothing where it was, and its new place cannot have explained the scans from before the jump.
 """
 
 from __future__ import annotations
@@ -298,7 +313,7 @@ class LostDetector:
         polish_sigma_yaw_deg: float = 3.0,
         opinion_inlier_gain: float = 0.15,
         opinion_badness_ratio: float = 0.7,
-        saturated_badness_ratio: float | None = None,
+        saturated_badness_ratio: float | None = 0.75,
         opinion_min_range_m: float = 5.0,
         max_vetoed_updates: int = 30,
         probation_updates: int = 10,
@@ -309,7 +324,7 @@ class LostDetector:
         doubt_ratio: float = 0.8,
         doubt_opinions: bool = True,
         doubt_inlier_gain: float = 0.25,
-        history_updates: int = 0,
+        history_updates: int = 30,
         history_margin: float = 0.05,
         history_min_inliers: float = 0.5,
     ):

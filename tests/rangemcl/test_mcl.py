@@ -184,8 +184,10 @@ def test_the_look_at_the_past_moves_poses_back_along_the_odometry(world, tmp_pat
     restore_state(tmp_path / "state.npz", {"filter": again})
     assert again._recent.maxlen == 21 and len(again._recent) == 21
     assert np.array_equal(again._history_inliers(path[39][None]), fit[:1])
-    # off (the default): nothing kept
-    off = build_localizer(m, small_settings(), seed=3, caster=caster)
+    # off: nothing kept
+    s_off = small_settings()
+    s_off.recovery.history_updates = 0
+    off = build_localizer(m, s_off, seed=3, caster=caster)
     off.start_at(path[0])
     off.step(se2_between(path[0], path[1]), scan_at(town, caster, geo, path[1]))
     assert len(off._recent) == 0
