@@ -189,6 +189,8 @@ class RecoverySettings:
     history_min_inliers: float = 0.5  # ... asked only while the filter's best particle still fits at least
     # this share of the far rays (below it, a teleport rather than a changed street: its past would hold
     # a true new place back)
+    history_in_probation: bool = True  # ... and in the probation after a convergence too (False: an
+    # experiment, docs/results/v12: the search chose the filter's place on those same past scans)
     opinion_min_range_m: float = 5.0  # the opinion compares rays measured at least this far (a
     # vehicle alongside hid 63 % of the structure rays at 2.5 m on the town_medium suite, and a far-off
     # place fit those near rays better than the true one)
@@ -545,6 +547,7 @@ def build_localizer(
             history_updates=r.history_updates,
             history_margin=r.history_margin,
             history_min_inliers=r.history_min_inliers,
+            history_in_probation=r.history_in_probation,
             opinion_min_range_m=r.opinion_min_range_m,
             max_vetoed_updates=r.max_vetoed_updates,
             probation_updates=r.probation_updates,

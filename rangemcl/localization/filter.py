@@ -839,6 +839,7 @@ class MonteCarloLocalizer:
             and self._keep_recent
             and own_inl is not None
             and float(own_inl[j]) >= lost.history_min_inliers
+            and (lost.history_in_probation or not lost.in_probation)
         ):
             own = self.particles[j].copy()
             rival_fit = history_fit(self._history_inliers, found.pose, polish)

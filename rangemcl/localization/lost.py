@@ -327,11 +327,14 @@ class LostDetector:
         history_updates: int = 30,
         history_margin: float = 0.05,
         history_min_inliers: float = 0.5,
+        history_in_probation: bool = True,
     ):
         self.watch = watch
         self.history_updates = int(history_updates)
         self.history_margin = float(history_margin)
         self.history_min_inliers = float(history_min_inliers)
+        self.history_in_probation = bool(history_in_probation)
+        self.in_probation = False  # the current update is one of the probation's
         self.refuted = 0  # better places that did not explain the recent past as well (history_fit)
         self.doubt_ratio = float(doubt_ratio)
         self.doubt_opinions = bool(doubt_opinions)
@@ -420,6 +423,7 @@ class LostDetector:
         last better place to where this update should find it). Returns ``(lost, vetoed)``."""
         suspicious = self.watch.update(best, inliers)
         probation = self._probation > 0
+        self.in_probation = probation
         self._probation = max(0, self._probation - 1)
         doubt = self.doubt_opinions and self.watch.last_ratio < self.doubt_ratio  # (False when NaN)
         if not (suspicious or probation or doubt):
