@@ -280,9 +280,18 @@ def test_probation_undoes_a_convergence_when_a_better_place_is_confirmed():
     # after the probation, an unsuspicious filter asks nobody
     det.start_probation()
     calls = []
+    seen = []  # whether the opinion was asked in the probation (the filter leaves the look at the past
+    # out there with recovery.history_in_probation: false)
+
+    def ask(*_):
+        calls.append(1)
+        seen.append(det.in_probation)
+        return Opinion(False, np.zeros(3), 0.5, 0.5, 1)
+
     for _ in range(5):
-        det.update(0.1, 0.9, lambda *_: calls.append(1) or Opinion(False, np.zeros(3), 0.5, 0.5, 1), motion)
-    assert len(calls) == 3
+        det.update(0.1, 0.9, ask, motion)
+    assert len(calls) == 3 and seen == [True, True, True]
+    assert not det.in_probation
 
 
 def test_one_update_without_the_rival_does_not_undo_its_confirmation():
