@@ -173,11 +173,10 @@ class RecoverySettings:
     doubt_inlier_gain: float = 0.25  # ... where a better place must gain this much of the inlier share
     opinion_inlier_gain: float = 0.15  # better: inlier share higher by this (and a lower residual)
     opinion_badness_ratio: float = 0.7  # ... or, for models without an inlier share, badness below this x
-    # the filter's
-    # where the filter's inlier share leaves no room for the gain (above 1 - gain; the MQ-8's far rays
-    # saturate it at a wrong place as at the true one), a place with as many inliers (within 0.02) and a
-    # badness below this x the filter's is better as well (revision 12; None: off, revisions 11 and before;
-    # docs/results/v11 and v12)
+    # the filter's. Where the filter's inlier share leaves no room for the gain (above 1 - gain; the
+    # MQ-8's far rays saturate it at a wrong place as at the true one), a place with as many inliers
+    # (within 0.02) and a badness below this x the filter's is better as well (revision 12; None: off,
+    # revisions 11 and before; docs/results/v11 and v12)
     saturated_badness_ratio: float | None = 0.75
     # a better place must also explain the recent past: its mean inlier share over the far rays of the
     # previous history_updates updates' scans (moved back along the odometry, polished like the opinion's

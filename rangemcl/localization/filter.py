@@ -281,10 +281,8 @@ class MonteCarloLocalizer:
         self._motion = np.zeros(3)
         # the recent updates' rays (None: no scan) and odometry since the update before, oldest first, for
         # the second opinion's look at the past (LostDetector.history_updates; empty when that is off)
-        keep = lost.history_updates + 1 if lost is not None and lost.history_updates > 0 else 0
-        self._recent: deque = deque(maxlen=max(1, keep))
-        self._keep_recent = keep > 0
-        self.last_history = (math.nan, math.nan)  # the last look at the past: (rival's fit, own fit)
+        keep = lost is not None and lost.history_updates > 0
+        self._recent: deque | None = deque(maxlen=lost.history_updates + 1) if keep else None
         self.hypotheses: list = []  # the search's clusters at the last update, largest share first
         self.refinements = 0  # refinements taken ...
         self.refused_refinements = 0  # ... and refused (outside the cloud's spread)
@@ -498,7 +496,7 @@ class MonteCarloLocalizer:
                     sensor_height_m=self.sensor_height_m,
                 )
             self._move()
-            if self._keep_recent:
+            if self._recent is not None:
                 self._recent.append((rays, self._motion.copy()))
             if rays is None:
                 info["skipped_scan"] = True
@@ -836,7 +834,7 @@ class MonteCarloLocalizer:
         )
         if (
             found.better
-            and self._keep_recent
+            and self._recent is not None
             and own_inl is not None
             and float(own_inl[j]) >= lost.history_min_inliers
             and (lost.history_in_probation or not lost.in_probation)
@@ -844,10 +842,8 @@ class MonteCarloLocalizer:
             own = self.particles[j].copy()
             rival_fit = history_fit(self._history_inliers, found.pose, polish)
             own_fit = history_fit(self._history_inliers, own, polish)
-            self.last_history = (rival_fit, own_fit)
             if math.isfinite(rival_fit) and rival_fit < own_fit - lost.history_margin:
                 found.better = False  # (NaN own_fit: the comparison is False, the place stays better)
-                lost.refuted += 1
         return found
 
     def _history_inliers(self, poses: np.ndarray) -> np.ndarray:
@@ -864,9 +860,7 @@ class MonteCarloLocalizer:
             if sub is None:
                 continue
             self.scorer.score(sub, p, self.sensor_z(p[:, :2]))
-            if self.scorer.last_inliers is None:
-                return np.full(len(p), math.nan)
-            total += self.scorer.last_inliers
+            total += self.scorer.last_inliers  # (asked only of models with an inlier share)
             count += 1
         if count == 0 or count < 0.5 * self.lost.history_updates:
             return np.full(len(p), math.nan)

@@ -335,7 +335,6 @@ class LostDetector:
         self.history_min_inliers = float(history_min_inliers)
         self.history_in_probation = bool(history_in_probation)
         self.in_probation = False  # the current update is one of the probation's
-        self.refuted = 0  # better places that did not explain the recent past as well (history_fit)
         self.doubt_ratio = float(doubt_ratio)
         self.doubt_opinions = bool(doubt_opinions)
         self.doubt_inlier_gain = float(doubt_inlier_gain)

@@ -190,7 +190,7 @@ def test_the_look_at_the_past_moves_poses_back_along_the_odometry(world, tmp_pat
     off = build_localizer(m, s_off, seed=3, caster=caster)
     off.start_at(path[0])
     off.step(se2_between(path[0], path[1]), scan_at(town, caster, geo, path[1]))
-    assert len(off._recent) == 0
+    assert off._recent is None
 
 
 def test_prepare_rays_deskews_with_the_frame_motion():
