@@ -188,8 +188,9 @@ class RecoverySettings:
     history_min_inliers: float = 0.5  # ... asked only while the filter's best particle still fits at least
     # this share of the far rays (below it, a teleport rather than a changed street: its past would hold
     # a true new place back)
-    history_in_probation: bool = True  # ... and in the probation after a convergence too (False: an
-    # experiment, docs/results/v12: the search chose the filter's place on those same past scans)
+    history_in_probation: bool = False  # ... but not in the probation after a convergence (revision 13:
+    # the search chose the filter's place on those same past scans, so the past favours a wrong
+    # convergence and delayed its catch by 2 frames on town_large; docs/results/v12, v13)
     opinion_min_range_m: float = 5.0  # the opinion compares rays measured at least this far (a
     # vehicle alongside hid 63 % of the structure rays at 2.5 m on the town_medium suite, and a far-off
     # place fit those near rays better than the true one)
