@@ -193,6 +193,42 @@ def test_the_look_at_the_past_moves_poses_back_along_the_odometry(world, tmp_pat
     assert off._recent is None
 
 
+def test_the_look_at_the_past_is_left_out_of_the_probation(world):
+    """Revision 13: a filter converged 12 m down the street from the car, asked for a second opinion,
+    finds the true place; the look at the past (recovery.history_updates) is taken after the probation,
+    where the true place, which explained the past scans, stays better, and not in the probation after a
+    convergence (the search chose its place from those same scans), unless history_in_probation is set."""
+    town, caster, m, path, geo = world
+    s = small_settings()
+    s.recovery.history_updates = 10
+    s.recovery.history_min_inliers = 0.0  # (asked at any fit of the filter's own place)
+    loc = build_localizer(m, s, seed=3, caster=caster)
+    assert loc.lost.history_in_probation is False  # the default
+    loc.start_at(path[0])
+    for k in range(1, 25):
+        loc.step(se2_between(path[k - 1], path[k]), scan_at(town, caster, geo, path[k]))
+    pts = scan_at(town, caster, geo, path[24])
+    rays = loc.select_rays(pts, loc.rng, sensor_height_m=loc.sensor_height_m)
+    wrong = path[24] + np.array([12.0, 0.0, 0.0])
+    loc._set_particles(wrong + np.random.default_rng(0).normal(0.0, 0.1, (60, 3)) * [1.0, 1.0, 0.02])
+    loc.last_estimate = wrong.copy()
+    looks = []
+    real = loc._history_inliers
+    loc._history_inliers = lambda p: (looks.append(len(p)), real(p))[1]
+
+    def ask(probation: bool):
+        looks.clear()
+        loc.lost.in_probation = probation
+        found = loc._second_opinion(rays, np.asarray(pts, np.float64), None, 0.15)
+        assert found.better and np.hypot(*(found.pose[:2] - path[24][:2])) < 4.0  # (not 12 m off)
+        return len(looks)
+
+    assert ask(probation=True) == 0
+    assert ask(probation=False) > 0
+    loc.lost.history_in_probation = True  # revision 12
+    assert ask(probation=True) > 0
+
+
 def test_prepare_rays_deskews_with_the_frame_motion():
     """Points fired from a moving sensor, de-skewed, land where a sensor at the stamp pose sees them."""
     rng = np.random.default_rng(0)
