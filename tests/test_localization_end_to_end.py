@@ -248,3 +248,72 @@ def test_localize_resumes_after_sigterm_and_sigkill_to_the_same_results(town):
     assert not (part / ".resume").exists()
     r = subprocess.run(_localize_cmd(town, part, "--resume"), capture_output=True, text=True)
     assert r.returncode == 2 and "finished" in r.stderr
+
+
+def test_likelihood_peak_tool_finds_the_true_pose_best(town, tmp_path):
+    """tools/likelihood_peak.py on the test drive: the true pose fits better (a smaller mean residual) than
+    every moved pose at the median, and the evidence against a pose grows with its offset."""
+    from pathlib import Path
+
+    tool = Path(__file__).resolve().parents[1] / "tools" / "likelihood_peak.py"
+    out = tmp_path / "peak.json"
+    args = ["--seq", str(town / "test_run"), "--map", str(town / "map"), "--every", "10", "--last", "50"]
+    r = subprocess.run(
+        [sys.executable, str(tool), *args, "--json", str(out)], capture_output=True, text=True, timeout=300
+    )
+    assert r.returncode == 0, r.stderr
+    peak = json.loads(out.read_text())
+    assert peak["scans"] == 5
+    off = peak["offsets"]
+    true_d = off["true"]["median_d_m"]
+    assert all(v["median_d_m"] > true_d for k, v in off.items() if k != "true")
+    for axis in ("forward", "lateral"):
+        assert off[f"{axis} 1 m"]["median_nats"] > off[f"{axis} 0.1 m"]["median_nats"] > 0
+    assert off["yaw 5 deg"]["median_nats"] > off["yaw 0.5 deg"]["median_nats"] > 0
+    r = subprocess.run(
+        [sys.executable, str(tool), "--seq", str(town / "nope"), "--map", str(town / "map")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "nope" in r.stderr, r.stderr
+
+
+def test_search_trace_tool_follows_a_global_search(town, tmp_path):
+    """tools/search_trace.py replays a global search on the test drive and says where the truth stands at
+    every update of it; bad input is one line and exit status 2."""
+    import csv
+    from pathlib import Path
+
+    tool = Path(__file__).resolve().parents[1] / "tools" / "search_trace.py"
+    out = tmp_path / "trace.csv"
+    args = ["--seq", str(town / "test_run"), "--map", str(town / "map"), "--frames", "30", "--seed", "1"]
+    r = subprocess.run(
+        [sys.executable, str(tool), *args, "--particles", "2000", "--csv", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert r.returncode == 0, r.stderr
+    rows = list(csv.DictReader(out.open()))
+    # the same run as rangemcl localize's with these settings: it converges at the same frame
+    run = tmp_path / "run"
+    seq, m = str(town / "test_run"), str(town / "map")
+    cli = [sys.executable, "-m", "rangemcl.cli", "localize", seq, "--map", m]
+    opts = ["--out", str(run), "--frames", "30", "--seed", "1", "--particles", "2000", "--no-plots"]
+    c = subprocess.run([*cli, *opts], capture_output=True, text=True, timeout=600)
+    assert c.returncode == 0, c.stderr
+    frame = json.loads((run / "summary.json").read_text())["converged_frame"]
+    assert frame is not None and f"converged at frame {frame}" in r.stdout, r.stdout
+    # one row per search update up to the convergence, which is at the true place
+    assert [int(x["converged"]) for x in rows] == [0] * (len(rows) - 1) + [1]
+    assert int(rows[-1]["frame"]) == frame
+    assert float(rows[-1]["leader_error_m"]) < 1.0 and rows[-1]["true_rank"] == "0"
+    assert all(float(x["d_cloud_best_m"]) <= float(x["d_near_best_m"]) for x in rows if x["d_near_best_m"])
+    r = subprocess.run(
+        [sys.executable, str(tool), "--seq", str(town / "nope"), "--map", str(town / "map")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "nope" in r.stderr, r.stderr
