@@ -59,8 +59,9 @@ class ParticleSettings:
     resample_neff_ratio: float = 0.75  # resample when N_eff < ratio · N
     jitter_xy_m: float = 0.05  # roughening after each resampling once converged (keeps copies apart)
     jitter_yaw_deg: float = 0.5
-    global_jitter_xy_m: float = 0.2  # roughening before convergence (lets clusters explore)
-    global_jitter_yaw_deg: float = 2.0
+    global_jitter_xy_m: float = 0.05  # roughening before convergence (lets clusters explore; 0.2 m and
+    global_jitter_yaw_deg: float = 0.25  # 2 degrees before revision 14, whose polish explores instead:
+    # a copy roughened by 2 degrees falls off the likelihood's peak, tools/likelihood_peak.py)
     estimate_best_share: float = 0.8  # estimate = weighted mean of the best 80 %
 
 
@@ -142,6 +143,11 @@ class ConvergenceSettings:
     kld_bin_xy_m: float = 2.0  # ... on bins of this size ...
     kld_bin_yaw_deg: float = 15.0
     min_search_particles: int = 1000  # ... but never fewer than this while searching
+    polish_hypotheses: int = (
+        16  # while searching, the heaviest this many hypotheses (a cluster's particles in
+    )
+    # one 30 degree sector of yaw) get a dense local search around their best particle on each scan ...
+    polish_keep: int = 8  # ... whose best this many poses join the cloud (revision 14; 0: off, as before)
 
 
 @dataclass
@@ -349,6 +355,8 @@ class LocalizerSettings:
             "convergence.margin_nats": c.margin_nats,
             "convergence.min_distance_m": c.min_distance_m,
             "convergence.prune_nats": c.prune_nats,
+            "convergence.polish_hypotheses": c.polish_hypotheses,
+            "convergence.polish_keep": c.polish_keep,
             "convergence.separation_m": c.separation_m,
             "recovery.inlier_factor": r.inlier_factor,
             "recovery.inlier_residual_factor": r.inlier_residual_factor,
@@ -655,6 +663,8 @@ def build_localizer(
         kld_bin_xy_m=c.kld_bin_xy_m,
         kld_bin_yaw_deg=c.kld_bin_yaw_deg,
         min_search_particles=c.min_search_particles,
+        polish_hypotheses=c.polish_hypotheses,
+        polish_keep=c.polish_keep,
     )
 
 

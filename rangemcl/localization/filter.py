@@ -77,6 +77,11 @@ from rangemcl.particles import (
 )
 from rangemcl.se2 import odometry_increment, rotation_roll_pitch, se2_compose, se2_inverse, wrap_angle
 
+# the search's polish of its heaviest hypotheses (MonteCarloLocalizer._polish_hypotheses): a coarse grid
+# (half width and step in metres along and across the seed's heading, then in degrees of yaw) and a fine
+# one around the coarse grid's best pose
+POLISH_COARSE = (2.0, 0.5, 8.0, 2.0)
+POLISH_FINE = (0.4, 0.2, 1.5, 0.5)
 HELD_YAW_RAD = math.radians(20.0)  # a fresh prior particle this close in yaw to a held one (and within
 # cluster_m) is a place the search holds already
 
@@ -199,6 +204,8 @@ class MonteCarloLocalizer:
         kld_bin_xy_m: float = 2.0,
         kld_bin_yaw_deg: float = 15.0,
         min_search_particles: int = 1000,
+        polish_hypotheses: int = 16,
+        polish_keep: int = 8,
     ):
         if convergence not in ("hypotheses", "tiles"):
             raise InputError(f"convergence {convergence!r}: expected 'hypotheses' or 'tiles'")
@@ -259,6 +266,8 @@ class MonteCarloLocalizer:
         self.kld_epsilon = float(kld_epsilon)
         self.kld_bin = (float(kld_bin_xy_m), float(kld_bin_yaw_deg))
         self.min_search_particles = int(min_search_particles)
+        self.polish_hypotheses = int(polish_hypotheses)
+        self.polish_keep = int(polish_keep)
         self.convergence_test = ConvergenceTest(margin_nats, min_distance_m, compact_radius_m, separation_m)
 
         self.prior: PlacePrior | None = None
@@ -634,6 +643,13 @@ class MonteCarloLocalizer:
     def _weigh(self, rays: ScanRays, levelled: np.ndarray | None = None, level=None) -> dict:
         loglik, bad = self.scorer.score(rays, self.particles, self.sensor_z(self.particles[:, :2]))
         self.log_w = self.log_w + loglik
+        if (
+            not self.converged
+            and self.convergence == "hypotheses"
+            and self.polish_hypotheses > 0
+            and self.polish_keep > 0
+        ):
+            loglik, bad = self._polish_hypotheses(rays, loglik, bad)
         best = float(bad.min())
         inl = self.scorer.last_inliers
         inliers = float(inl[np.argmax(loglik)]) if inl is not None and len(inl) else math.nan
@@ -676,6 +692,80 @@ class MonteCarloLocalizer:
         if self.converged:
             self.converged_updates += 1
         return out
+
+    def _grid_search(self, rays: ScanRays, seeds: np.ndarray, grid: tuple[float, float, float, float]):
+        """Each seed ``(x, y, yaw)`` scored over a grid of poses in its own frame (forward, left, yaw):
+        ``grid`` = ``(half_m, step_m, half_deg, step_deg)``. Returns the poses ``(K, G, 3)``, their
+        log-likelihoods, badness and inlier shares ``(K, G)`` (inliers None for models without them)."""
+        half_m, step_m, half_deg, step_deg = grid
+        ax = np.arange(-half_m, half_m + 1e-9, step_m)
+        ay = np.radians(np.arange(-half_deg, half_deg + 1e-9, step_deg))
+        g = np.array(np.meshgrid(ax, ax, ay, indexing="ij")).reshape(3, -1).T
+        c, s = np.cos(seeds[:, 2])[:, None], np.sin(seeds[:, 2])[:, None]
+        p = np.empty((len(seeds), len(g), 3))
+        p[:, :, 0] = seeds[:, None, 0] + c * g[None, :, 0] - s * g[None, :, 1]
+        p[:, :, 1] = seeds[:, None, 1] + s * g[None, :, 0] + c * g[None, :, 1]
+        p[:, :, 2] = wrap_angle(seeds[:, None, 2] + g[None, :, 2])
+        flat = p.reshape(-1, 3)
+        ll, bad = self.scorer.score(rays, flat, self.sensor_z(flat[:, :2]))
+        inl = self.scorer.last_inliers
+        shape = (len(seeds), len(g))
+        return p, ll.reshape(shape), bad.reshape(shape), None if inl is None else inl.reshape(shape)
+
+    def _polish_hypotheses(
+        self, rays: ScanRays, loglik: np.ndarray, bad: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """While searching, the ``polish_hypotheses`` heaviest hypotheses (a cluster's particles within
+        one 30° sector of yaw) are searched around their best particle on this scan: a coarse grid
+        (:data:`POLISH_COARSE`) and a fine one around its best pose (:data:`POLISH_FINE`); the fine grid's
+        ``polish_keep`` best poses join the cloud. The range likelihood is sharp (median over the MQ-8's
+        town_large drive: 0.55 nats per update lost 0.2 m to the side, 0.55 at 1° of yaw;
+        ``tools/likelihood_peak.py``) and a hypothesis holds a few dozen particles over metres and
+        degrees, so without this the true place was judged by particles 1-3 m and up to 9° off its peak
+        (mean residual 0.51 m against 0.22 m at the true pose) and trailed a look-alike street's 0.44 m
+        for 30 updates (``tools/search_trace.py``; revision 14, README, issue 13). The seed's weight
+        before this scan is shared among itself and the new poses, each then taking its own likelihood.
+        Returns ``loglik`` and ``bad`` extended to the new poses."""
+        labels, _count = cluster_labels(self.particles[:, :2], self.cluster_m)
+        sectors = 12
+        sector = np.floor((self.particles[:, 2] + math.pi) / (2 * math.pi) * sectors).astype(np.int64)
+        labels = labels * sectors + sector.clip(0, sectors - 1)
+        lw = self.log_w
+        mass = np.bincount(labels, weights=np.exp(lw - lw.max()))
+        top = np.argsort(-mass, kind="stable")[: self.polish_hypotheses]
+        top = top[mass[top] > 0]
+        if len(top) == 0:
+            return loglik, bad
+        order = np.lexsort((-lw, labels))  # by hypothesis, its heaviest particle first
+        seeds_idx = order[np.searchsorted(labels[order], top)]
+        k = len(seeds_idx)
+        inl0 = self.scorer.last_inliers
+        p, ll, _b, _i = self._grid_search(rays, self.particles[seeds_idx], POLISH_COARSE)
+        coarse_best = p[np.arange(k), np.argmax(ll, axis=1)]
+        p, ll, b, inl = self._grid_search(rays, coarse_best, POLISH_FINE)
+        keep = min(self.polish_keep, ll.shape[1])
+        pick = np.argsort(-ll, axis=1, kind="stable")[:, :keep]
+        rows = np.arange(k)[:, None]
+        new, ll_new, bad_new = (
+            p[rows, pick].reshape(-1, 3),
+            ll[rows, pick].reshape(-1),
+            b[rows, pick].reshape(-1),
+        )
+        origin = np.repeat(seeds_idx, keep)  # each new pose's seed
+        split = math.log(keep + 1)
+        lw = lw.copy()
+        before = lw[origin] - loglik[origin]
+        lw[seeds_idx] -= split
+        n0 = len(self.particles)
+        self.log_w = np.concatenate([lw, before - split + ll_new])
+        self.particles = np.vstack([self.particles, new])
+        if self._leader is not None and len(self._leader) == n0:
+            self._leader = np.concatenate([self._leader, self._leader[origin]])
+        if inl0 is not None and inl is not None:
+            self.scorer.last_inliers = np.concatenate([inl0, inl[rows, pick].reshape(-1)])
+        else:
+            self.scorer.last_inliers = None
+        return np.concatenate([loglik, ll_new]), np.concatenate([bad, bad_new])
 
     def _start_probation(self) -> None:
         if self.lost is not None:
