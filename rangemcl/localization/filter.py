@@ -82,6 +82,7 @@ from rangemcl.se2 import odometry_increment, rotation_roll_pitch, se2_compose, s
 # one around the coarse grid's best pose
 POLISH_COARSE = (2.0, 0.5, 8.0, 2.0)
 POLISH_FINE = (0.4, 0.2, 1.5, 0.5)
+POLISH_COARSE_RAYS_EVERY = 3  # the coarse grid is scored on every third ray
 HELD_YAW_RAD = math.radians(20.0)  # a fresh prior particle this close in yaw to a held one (and within
 # cluster_m) is a place the search holds already
 
@@ -717,7 +718,8 @@ class MonteCarloLocalizer:
     ) -> tuple[np.ndarray, np.ndarray]:
         """While searching, the ``polish_hypotheses`` heaviest hypotheses (a cluster's particles within
         one 30° sector of yaw) are searched around their best particle on this scan: a coarse grid
-        (:data:`POLISH_COARSE`) and a fine one around its best pose (:data:`POLISH_FINE`); the fine grid's
+        (:data:`POLISH_COARSE`, scored on every third ray) and a fine one around its best pose
+        (:data:`POLISH_FINE`, all rays); the fine grid's
         ``polish_keep`` best poses join the cloud. The range likelihood is sharp (median over the MQ-8's
         town_large drive: 0.55 nats per update lost 0.2 m to the side, 0.55 at 1° of yaw;
         ``tools/likelihood_peak.py``) and a hypothesis holds a few dozen particles over metres and
@@ -740,7 +742,14 @@ class MonteCarloLocalizer:
         seeds_idx = order[np.searchsorted(labels[order], top)]
         k = len(seeds_idx)
         inl0 = self.scorer.last_inliers
-        p, ll, _b, _i = self._grid_search(rays, self.particles[seeds_idx], POLISH_COARSE)
+        every = POLISH_COARSE_RAYS_EVERY  # the coarse grid on a third of the rays (its cost)
+        coarse_rays = ScanRays(
+            rays.directions[::every],
+            rays.ranges[::every],
+            rays.valid_points,
+            None if rays.structure is None else rays.structure[::every],
+        )
+        p, ll, _b, _i = self._grid_search(coarse_rays, self.particles[seeds_idx], POLISH_COARSE)
         coarse_best = p[np.arange(k), np.argmax(ll, axis=1)]
         p, ll, b, inl = self._grid_search(rays, coarse_best, POLISH_FINE)
         keep = min(self.polish_keep, ll.shape[1])
