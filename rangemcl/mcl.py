@@ -194,9 +194,11 @@ class RecoverySettings:
     history_min_inliers: float = 0.5  # ... asked only while the filter's best particle still fits at least
     # this share of the far rays (below it, a teleport rather than a changed street: its past would hold
     # a true new place back)
-    history_in_probation: bool = False  # ... but not in the probation after a convergence (revision 13:
-    # the search chose the filter's place on those same past scans, so the past favours a wrong
-    # convergence and delayed its catch by 2 frames on town_large; docs/results/v12, v13)
+    history_in_probation: bool = True  # ... also in the probation after a convergence (revision 13 left it
+    # out there: the search chose its place on those same past scans, and the past delayed a wrong
+    # convergence's catch by 2 frames on town_large; revision 14 takes it again: its polished search
+    # converges earlier, and the MQ-8's first one there, at the true place, was called lost 7 updates
+    # later without it; docs/results/v12, v13, v14)
     opinion_min_range_m: float = 5.0  # the opinion compares rays measured at least this far (a
     # vehicle alongside hid 63 % of the structure rays at 2.5 m on the town_medium suite, and a far-off
     # place fit those near rays better than the true one)

@@ -86,8 +86,9 @@ class Trial:
 # its best places and keeps scoring the last better place; 11: the second opinion over the prior's best
 # 100 places, 16 of them looked at again; 12: where the inlier share saturates, residuals decide, and a better
 # place must explain the last 30 updates' scans as well; 13: ... but not in the probation after a
-# convergence; 14: the search's heaviest hypotheses get a dense local search on every scan, and its
-# roughening shrinks to 0.05 m and 0.25 degrees), so trials of earlier revisions (keys without "-v14")
+# convergence; 14: the search's heaviest hypotheses get a dense local search on every scan, its
+# roughening shrinks to 0.05 m and 0.25 degrees, and the look at the past is taken in the probation
+# again), so trials of earlier revisions (keys without "-v14")
 # are never taken for today's.
 # (Fresh particles at 0.1 % of the weight and only where the search holds none were measured and not
 # adopted: README; their settings are configs/search_no_cap.yaml.)

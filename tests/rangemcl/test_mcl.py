@@ -193,17 +193,17 @@ def test_the_look_at_the_past_moves_poses_back_along_the_odometry(world, tmp_pat
     assert off._recent is None
 
 
-def test_the_look_at_the_past_is_left_out_of_the_probation(world):
-    """Revision 13: a filter converged 12 m down the street from the car, asked for a second opinion,
-    finds the true place; the look at the past (recovery.history_updates) is taken after the probation,
-    where the true place, which explained the past scans, stays better, and not in the probation after a
-    convergence (the search chose its place from those same scans), unless history_in_probation is set."""
+def test_the_look_at_the_past_is_taken_in_the_probation_unless_left_out(world):
+    """A filter converged 12 m down the street from the car, asked for a second opinion, finds the true
+    place; the look at the past (recovery.history_updates) is taken after the probation, where the true
+    place, which explained the past scans, stays better, and in the probation after a convergence
+    (revision 14; revision 13 left it out there: history_in_probation false)."""
     town, caster, m, path, geo = world
     s = small_settings()
     s.recovery.history_updates = 10
     s.recovery.history_min_inliers = 0.0  # (asked at any fit of the filter's own place)
     loc = build_localizer(m, s, seed=3, caster=caster)
-    assert loc.lost.history_in_probation is False  # the default
+    assert loc.lost.history_in_probation is True  # the default (revision 14)
     loc.start_at(path[0])
     for k in range(1, 25):
         loc.step(se2_between(path[k - 1], path[k]), scan_at(town, caster, geo, path[k]))
@@ -223,10 +223,11 @@ def test_the_look_at_the_past_is_left_out_of_the_probation(world):
         assert found.better and np.hypot(*(found.pose[:2] - path[24][:2])) < 4.0  # (not 12 m off)
         return len(looks)
 
+    assert ask(probation=True) > 0
+    assert ask(probation=False) > 0
+    loc.lost.history_in_probation = False  # revision 13
     assert ask(probation=True) == 0
     assert ask(probation=False) > 0
-    loc.lost.history_in_probation = True  # revision 12
-    assert ask(probation=True) > 0
 
 
 def test_prepare_rays_deskews_with_the_frame_motion():

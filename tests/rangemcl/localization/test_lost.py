@@ -281,7 +281,7 @@ def test_probation_undoes_a_convergence_when_a_better_place_is_confirmed():
     det.start_probation()
     calls = []
     seen = []  # whether the opinion was asked in the probation (the filter leaves the look at the past
-    # out there by default, revision 13: recovery.history_in_probation: false)
+    # out there with recovery.history_in_probation: false, revision 13)
 
     def ask(*_):
         calls.append(1)
