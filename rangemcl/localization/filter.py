@@ -723,10 +723,11 @@ class MonteCarloLocalizer:
         ``polish_keep`` best poses join the cloud. The range likelihood is sharp (median over the MQ-8's
         town_large drive: 0.55 nats per update lost 0.2 m to the side, 0.55 at 1° of yaw;
         ``tools/likelihood_peak.py``) and a hypothesis holds a few dozen particles over metres and
-        degrees, so without this the true place was judged by particles 1-3 m and up to 9° off its peak
-        (mean residual 0.51 m against 0.22 m at the true pose) and trailed a look-alike street's 0.44 m
-        for 30 updates (``tools/search_trace.py``; revision 14, README, issue 13). The seed's weight
-        before this scan is shared among itself and the new poses, each then taking its own likelihood.
+        degrees, so without this the true place was judged by particles a median 1.5 m and 2° off its
+        peak (mean residual 0.51 m against 0.22 m at the true pose) and trailed a look-alike street's
+        0.44 m for 31 updates (MQ-8 from start 622, ``tools/search_trace.py``; revision 14, README).
+        The seed's weight before this scan is shared among itself and the new poses, each then taking
+        its own likelihood.
         Returns ``loglik`` and ``bad`` extended to the new poses."""
         labels, _count = cluster_labels(self.particles[:, :2], self.cluster_m)
         sectors = 12
