@@ -250,6 +250,17 @@ def test_localize_resumes_after_sigterm_and_sigkill_to_the_same_results(town):
     assert r.returncode == 2 and "finished" in r.stderr
 
 
+def _refuses_a_missing_drive(tool, town) -> None:
+    """A tool given a drive that does not exist: one error line naming it, exit status 2."""
+    r = subprocess.run(
+        [sys.executable, str(tool), "--seq", str(town / "nope"), "--map", str(town / "map")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "nope" in r.stderr, r.stderr
+
+
 def test_likelihood_peak_tool_finds_the_true_pose_best(town, tmp_path):
     """tools/likelihood_peak.py on the test drive: the true pose fits better (a smaller mean residual) than
     every moved pose at the median, and the evidence against a pose grows with its offset."""
@@ -270,13 +281,7 @@ def test_likelihood_peak_tool_finds_the_true_pose_best(town, tmp_path):
     for axis in ("forward", "lateral"):
         assert off[f"{axis} 1 m"]["median_nats"] > off[f"{axis} 0.1 m"]["median_nats"] > 0
     assert off["yaw 5 deg"]["median_nats"] > off["yaw 0.5 deg"]["median_nats"] > 0
-    r = subprocess.run(
-        [sys.executable, str(tool), "--seq", str(town / "nope"), "--map", str(town / "map")],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "nope" in r.stderr, r.stderr
+    _refuses_a_missing_drive(tool, town)
 
 
 def test_search_trace_tool_follows_a_global_search(town, tmp_path):
@@ -310,10 +315,4 @@ def test_search_trace_tool_follows_a_global_search(town, tmp_path):
     assert int(rows[-1]["frame"]) == frame
     assert float(rows[-1]["leader_error_m"]) < 1.0 and rows[-1]["true_rank"] == "0"
     assert all(float(x["d_cloud_best_m"]) <= float(x["d_near_best_m"]) for x in rows if x["d_near_best_m"])
-    r = subprocess.run(
-        [sys.executable, str(tool), "--seq", str(town / "nope"), "--map", str(town / "map")],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "nope" in r.stderr, r.stderr
+    _refuses_a_missing_drive(tool, town)

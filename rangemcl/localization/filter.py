@@ -719,16 +719,16 @@ class MonteCarloLocalizer:
         """While searching, the ``polish_hypotheses`` heaviest hypotheses (a cluster's particles within
         one 30° sector of yaw) are searched around their best particle on this scan: a coarse grid
         (:data:`POLISH_COARSE`, scored on every third ray) and a fine one around its best pose
-        (:data:`POLISH_FINE`, all rays); the fine grid's
-        ``polish_keep`` best poses join the cloud. The range likelihood is sharp (median over the MQ-8's
+        (:data:`POLISH_FINE`, all rays); the fine grid's ``polish_keep`` best poses join the cloud.
+        The range likelihood is sharp (median over the MQ-8's
         town_large drive: 0.55 nats per update lost 0.2 m to the side, 0.55 at 1° of yaw;
         ``tools/likelihood_peak.py``) and a hypothesis holds a few dozen particles over metres and
         degrees, so without this the true place was judged by particles a median 1.5 m and 2° off its
         peak (mean residual 0.51 m against 0.22 m at the true pose) and trailed a look-alike street's
         0.44 m for 31 updates (MQ-8 from start 622, ``tools/search_trace.py``; revision 14, README).
         The seed's weight before this scan is shared among itself and the new poses, each then taking
-        its own likelihood.
-        Returns ``loglik`` and ``bad`` extended to the new poses."""
+        its own likelihood. Returns ``loglik`` and ``bad`` extended to the new poses (the clusters are
+        found again by the search update: the new poses can join neighbouring ones)."""
         labels, _count = cluster_labels(self.particles[:, :2], self.cluster_m)
         sectors = 12
         sector = np.floor((self.particles[:, 2] + math.pi) / (2 * math.pi) * sectors).astype(np.int64)
@@ -743,13 +743,7 @@ class MonteCarloLocalizer:
         seeds_idx = order[np.searchsorted(labels[order], top)]
         k = len(seeds_idx)
         inl0 = self.scorer.last_inliers
-        every = POLISH_COARSE_RAYS_EVERY  # the coarse grid on a third of the rays (its cost)
-        coarse_rays = ScanRays(
-            rays.directions[::every],
-            rays.ranges[::every],
-            rays.valid_points,
-            None if rays.structure is None else rays.structure[::every],
-        )
+        coarse_rays = rays.subset(slice(None, None, POLISH_COARSE_RAYS_EVERY))  # a third: the cost
         p, ll, _b, _i = self._grid_search(coarse_rays, self.particles[seeds_idx], POLISH_COARSE)
         coarse_best = p[np.arange(k), np.argmax(ll, axis=1)]
         p, ll, b, inl = self._grid_search(rays, coarse_best, POLISH_FINE)
@@ -972,9 +966,4 @@ class MonteCarloLocalizer:
         far = rays.ranges >= self.lost.opinion_min_range_m
         if far.sum() < max(20, 0.1 * len(far)):
             return None
-        return ScanRays(
-            rays.directions[far],
-            rays.ranges[far],
-            rays.valid_points,
-            None if rays.structure is None else rays.structure[far],
-        )
+        return rays.subset(far)

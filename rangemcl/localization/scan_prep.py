@@ -38,6 +38,15 @@ class ScanRays:
     valid_points: int  # valid points in the scan before subsampling
     structure: np.ndarray | None = None  # (R,) bool: the point lies STRUCTURE_M above the ground
 
+    def subset(self, which) -> ScanRays:
+        """The rays selected by ``which`` (a boolean mask or a slice)."""
+        return ScanRays(
+            self.directions[which],
+            self.ranges[which],
+            self.valid_points,
+            None if self.structure is None else self.structure[which],
+        )
+
 
 def _band_weights(
     p: np.ndarray,
