@@ -174,6 +174,10 @@ class RecoverySettings:
     polish_per_place: int = 48  # ... this many particles around each one's best particle ...
     polish_sigma_xy_m: float = 0.6  # ... spread this much (normal; three rounds, each with half the last
     polish_sigma_yaw_deg: float = 3.0  # ... spread) and this much in yaw (revision 10; localization.lost)
+    polish_grid: bool = True  # ... or (revision 15) the search's grids instead of those random rounds: a
+    # coarse one (+-2 m, +-8 deg) on every third ray, then a fine one around its best pose
+    rival_first: bool = True  # the last better place (moved with the odometry) is confirmed when it is
+    # still better, even where another place fits a little more (revision 15; docs/results/v15)
     doubt_opinions: bool = True  # a second opinion also at every update whose inlier share is below 0.8 of
     # its running level, not only in a suspicion or the probation (revision 10) ...
     doubt_inlier_gain: float = 0.25  # ... where a better place must gain this much of the inlier share
@@ -199,6 +203,9 @@ class RecoverySettings:
     # convergence's catch by 2 frames on town_large; revision 14 takes it again: its polished search
     # converges earlier, and the MQ-8's first one there, at the true place, was called lost 7 updates
     # later without it; docs/results/v12, v13, v14)
+    history_skips_suspicion: bool = True  # ... on the scans before the current suspicion (its bad updates
+    # left out; revision 15: a bus alongside an MQ-8 hid the far rays at the true pose for 15 updates on
+    # town_medium, and over a past that held them a place 200 m off fit within 0.03 of it; docs/results/v15)
     opinion_min_range_m: float = 5.0  # the opinion compares rays measured at least this far (a
     # vehicle alongside hid 63 % of the structure rays at 2.5 m on the town_medium suite, and a far-off
     # place fit those near rays better than the true one)
@@ -551,6 +558,8 @@ def build_localizer(
             polish_per_place=r.polish_per_place,
             polish_sigma_xy_m=r.polish_sigma_xy_m,
             polish_sigma_yaw_deg=r.polish_sigma_yaw_deg,
+            polish_grid=r.polish_grid,
+            rival_first=r.rival_first,
             opinion_inlier_gain=r.opinion_inlier_gain,
             opinion_badness_ratio=r.opinion_badness_ratio,
             saturated_badness_ratio=r.saturated_badness_ratio,
@@ -558,6 +567,7 @@ def build_localizer(
             history_margin=r.history_margin,
             history_min_inliers=r.history_min_inliers,
             history_in_probation=r.history_in_probation,
+            history_skips_suspicion=r.history_skips_suspicion,
             opinion_min_range_m=r.opinion_min_range_m,
             max_vetoed_updates=r.max_vetoed_updates,
             probation_updates=r.probation_updates,

@@ -231,16 +231,26 @@ def second_opinion(
     badness_ratio: float = 0.7,
     polish: Polish | None = None,
     saturated_ratio: float | None = None,
+    look=None,
+    rival: np.ndarray | None = None,
+    rival_m: float = 5.0,
+    rival_deg: float = 20.0,
 ) -> Opinion:
     """Score ``candidates`` ``(M, 3)`` with ``score(particles) -> (badness (M,), inliers (M,) or None)``
     and decide whether the best of those farther than ``min_distance_m`` from ``estimate`` explains the
     scan clearly better than the filter's best particle: its inlier share higher by ``inlier_gain`` and
     its badness lower (models with an inlier share), or its badness below ``badness_ratio`` x the
     filter's (models without). With ``polish`` the best few places are searched again around their best
-    particle (:class:`Polish`) before the decision. With ``saturated_ratio``, where the filter's inlier
-    share leaves no room for the gain (``current_inliers + inlier_gain > 1``), the place with the least
-    badness among those with at least the filter's inlier share (less 0.02) is better when its badness is
-    below ``saturated_ratio`` x the filter's."""
+    particle (:class:`Polish`) before the decision; with ``look`` as well, a callable ``look(seeds (K, 3))
+    -> (poses (M, 3), badness (M,), inliers (M,) or None)``, that look replaces :class:`Polish`'s random
+    rounds (revision 15: the filter's grids, ``MonteCarloLocalizer._grid_look``). With
+    ``saturated_ratio``, where the filter's inlier share leaves no room for the gain (``current_inliers +
+    inlier_gain > 1``), the place with the least badness among those with at least the filter's inlier
+    share (less 0.02) is better when its badness is below ``saturated_ratio`` x the filter's. With
+    ``rival`` ``(3,)`` (the last better place, moved with the odometry: :class:`LostDetector`), the
+    candidates within ``rival_m`` and ``rival_deg`` of it are judged first, and the best of them is the
+    opinion when it is better (revision 15: an MQ-8 at a wrong place met the true place at one update and
+    at the next a look-alike with a few more inliers, and the count of confirmations began again)."""
     cand = np.asarray(candidates, np.float64).reshape(-1, 3)
     far = np.hypot(cand[:, 0] - estimate[0], cand[:, 1] - estimate[1]) > min_distance_m
     cand = cand[far]
@@ -248,7 +258,16 @@ def second_opinion(
         return Opinion(False, np.asarray(estimate, np.float64), math.inf, math.nan, 0)
     bad, inl = score(cand)
     bad = np.asarray(bad, np.float64)
-    for r in range(polish.rounds if polish is not None and polish.places > 0 else 0):
+    rounds = polish.rounds if polish is not None and polish.places > 0 else 0
+    if look is not None and rounds:
+        order = np.lexsort((bad, -np.asarray(inl))) if inl is not None else np.argsort(bad, kind="stable")
+        extra, bad2, inl2 = look(polish.seeds(cand[order]))
+        far = np.hypot(extra[:, 0] - estimate[0], extra[:, 1] - estimate[1]) > min_distance_m
+        cand = np.vstack([cand, extra[far]])
+        bad = np.concatenate([bad, np.asarray(bad2, np.float64)[far]])
+        inl = None if inl is None else np.concatenate([np.asarray(inl), np.asarray(inl2)[far]])
+        rounds = 0
+    for r in range(rounds):
         order = np.lexsort((bad, -np.asarray(inl))) if inl is not None else np.argsort(bad, kind="stable")
         extra = polish.around(polish.seeds(cand[order]), 0.5**r)
         far = np.hypot(extra[:, 0] - estimate[0], extra[:, 1] - estimate[1]) > min_distance_m
@@ -258,20 +277,36 @@ def second_opinion(
             cand = np.vstack([cand, extra])
             bad = np.concatenate([bad, np.asarray(bad2, np.float64)])
             inl = None if inl is None else np.concatenate([np.asarray(inl), np.asarray(inl2)])
-    if inl is not None and math.isfinite(current_inliers):
-        inl = np.asarray(inl, np.float64)
-        j = int(np.lexsort((bad, -inl))[0])  # the most inliers, then the least badness
-        better = bool(inl[j] >= current_inliers + inlier_gain and bad[j] < current_badness)
-        if not better and saturated_ratio is not None and current_inliers + inlier_gain > 1.0:
-            ok = np.flatnonzero(inl >= current_inliers - 0.02)
-            if len(ok):
-                k = int(ok[np.argmin(bad[ok])])
-                if bad[k] < saturated_ratio * current_badness:
-                    return Opinion(True, cand[k], float(bad[k]), float(inl[k]), len(cand))
-        return Opinion(better, cand[j], float(bad[j]), float(inl[j]), len(cand))
-    j = int(np.argmin(bad))
-    better = bool(bad[j] < badness_ratio * current_badness)
-    return Opinion(better, cand[j], float(bad[j]), math.nan, len(cand))
+    inl = None if inl is None else np.asarray(inl, np.float64)
+
+    def verdict(idx: np.ndarray) -> Opinion:
+        """The decision among the candidates ``idx``."""
+        c, b = cand[idx], bad[idx]
+        if inl is not None and math.isfinite(current_inliers):
+            i = inl[idx]
+            j = int(np.lexsort((b, -i))[0])  # the most inliers, then the least badness
+            better = bool(i[j] >= current_inliers + inlier_gain and b[j] < current_badness)
+            if not better and saturated_ratio is not None and current_inliers + inlier_gain > 1.0:
+                ok = np.flatnonzero(i >= current_inliers - 0.02)
+                if len(ok):
+                    k = int(ok[np.argmin(b[ok])])
+                    if b[k] < saturated_ratio * current_badness:
+                        return Opinion(True, c[k], float(b[k]), float(i[k]), len(cand))
+            return Opinion(better, c[j], float(b[j]), float(i[j]), len(cand))
+        j = int(np.argmin(b))
+        better = bool(b[j] < badness_ratio * current_badness)
+        return Opinion(better, c[j], float(b[j]), math.nan, len(cand))
+
+    if rival is not None:  # the rival confirmed goes before a new place (revision 15)
+        rival = np.asarray(rival, np.float64).reshape(3)
+        near = (np.hypot(cand[:, 0] - rival[0], cand[:, 1] - rival[1]) <= rival_m) & (
+            np.abs(wrap_angle(cand[:, 2] - rival[2])) <= math.radians(rival_deg)
+        )
+        if near.any():
+            found = verdict(np.flatnonzero(near))
+            if found.better:
+                return found
+    return verdict(np.arange(len(cand)))
 
 
 def history_fit(score_history, pose: np.ndarray, polish: Polish) -> float:
@@ -318,6 +353,8 @@ class LostDetector:
         polish_per_place: int = 48,
         polish_sigma_xy_m: float = 0.6,
         polish_sigma_yaw_deg: float = 3.0,
+        polish_grid: bool = True,
+        rival_first: bool = True,
         opinion_inlier_gain: float = 0.15,
         opinion_badness_ratio: float = 0.7,
         saturated_badness_ratio: float | None = 0.75,
@@ -335,12 +372,14 @@ class LostDetector:
         history_margin: float = 0.05,
         history_min_inliers: float = 0.5,
         history_in_probation: bool = True,
+        history_skips_suspicion: bool = True,
     ):
         self.watch = watch
         self.history_updates = int(history_updates)
         self.history_margin = float(history_margin)
         self.history_min_inliers = float(history_min_inliers)
         self.history_in_probation = bool(history_in_probation)
+        self.history_skips_suspicion = bool(history_skips_suspicion)
         self.in_probation = False  # the current update is one of the probation's
         self.doubt_ratio = float(doubt_ratio)
         self.doubt_opinions = bool(doubt_opinions)
@@ -351,6 +390,8 @@ class LostDetector:
         self.polish_places = int(polish_places)
         self.polish_per_place = int(polish_per_place)
         self.polish_sigma = (float(polish_sigma_xy_m), float(polish_sigma_yaw_deg))
+        self.polish_grid = bool(polish_grid)
+        self.rival_first = bool(rival_first)
         self.opinion_inlier_gain = float(opinion_inlier_gain)
         self.opinion_badness_ratio = float(opinion_badness_ratio)
         self.saturated_badness_ratio = (

@@ -175,14 +175,14 @@ def test_the_look_at_the_past_moves_poses_back_along_the_odometry(world, tmp_pat
     assert np.isnan(loc._history_inliers(path[5][None])).all()  # 5 past scans of the 20: no verdict
     for k in range(6, 40):
         loc.step(se2_between(path[k - 1], path[k]), scan_at(town, caster, geo, path[k]))
-    assert len(loc._recent) == 21
+    assert len(loc._recent) == 39 and loc._recent.maxlen == 21 + s.recovery.max_vetoed_updates
     fit = loc._history_inliers(np.array([path[39], path[39] + [0.0, 3.0, 0.0], path[39] + [0.0, 0.0, 0.1]]))
     assert fit[0] > 0.9 and fit[1] < fit[0] - 0.2 and fit[2] < fit[0] - 0.2
     # a checkpoint (rangemcl localize --resume) holds the kept updates: the same verdicts after a restore
     save_state(tmp_path / "state.npz", {"filter": loc})
     again = build_localizer(m, s, seed=3, caster=caster)
     restore_state(tmp_path / "state.npz", {"filter": again})
-    assert again._recent.maxlen == 21 and len(again._recent) == 21
+    assert again._recent.maxlen == loc._recent.maxlen and len(again._recent) == 39
     assert np.array_equal(again._history_inliers(path[39][None]), fit[:1])
     # off: nothing kept
     s_off = small_settings()
@@ -191,6 +191,31 @@ def test_the_look_at_the_past_moves_poses_back_along_the_odometry(world, tmp_pat
     off.start_at(path[0])
     off.step(se2_between(path[0], path[1]), scan_at(town, caster, geo, path[1]))
     assert off._recent is None
+
+
+def test_the_look_at_the_past_leaves_out_the_scans_of_the_suspicion(world):
+    """Revision 15 (recovery.history_skips_suspicion): the scans of the watch's current run of bad updates
+    (here 8 scans taken 3 m to the side of where the odometry says, as if hidden or changed) are left out
+    of the look at the past, so the true pose fits the past before them; with the skip off they drag its
+    fit down."""
+    town, caster, m, path, geo = world
+    s = small_settings()
+    s.recovery.history_updates = 20
+    loc = build_localizer(m, s, seed=3, caster=caster)
+    loc.start_at(path[0])
+    for k in range(1, 40):
+        seen = path[k] + ([0.0, 3.0, 0.0] if k >= 32 else 0.0)  # the last 8 scans: not the truth's
+        loc.step(se2_between(path[k - 1], path[k]), scan_at(town, caster, geo, seen))
+    loc.lost.watch.bad_updates = 8  # the suspicion's updates (the current one and the 7 before)
+    skipped = loc._history_inliers(path[39][None])[0]
+    loc.lost.history_skips_suspicion = False
+    kept = loc._history_inliers(path[39][None])[0]
+    assert skipped > 0.9 and kept < skipped - 0.1
+    # the same 20 scans whatever the suspicion's length: with a suspicion longer than the depth kept
+    # beyond the look, fewer than half of them remain and there is no verdict
+    loc.lost.history_skips_suspicion = True
+    loc.lost.watch.bad_updates = 30
+    assert np.isnan(loc._history_inliers(path[39][None])).all()
 
 
 def test_the_look_at_the_past_is_taken_in_the_probation_unless_left_out(world):
@@ -630,3 +655,26 @@ def test_the_search_polishes_its_hypotheses_onto_the_likelihoods_peak(world):
         loc._weigh(rays)
         dxy, dyaw = dist(loc.particles)
         assert bool(((dxy < 0.5) & (dyaw < math.radians(2.0))).any()) is expect
+
+
+def test_the_second_opinions_grid_look_lands_on_the_likelihoods_peak(world):
+    """Revision 15: the second opinion's look around a place (MonteCarloLocalizer._grid_look: the search's
+    coarse then fine grid) from a seed 1.5 m ahead, 0.8 m aside and 6° off the true pose returns a pose
+    within a fine step of the truth, fitting best, and one fine grid per seed."""
+    town, caster, m, path, geo = world
+    truth = path[30]
+    pts = scan_at(town, caster, geo, truth)
+    c, s_ = math.cos(truth[2]), math.sin(truth[2])
+    off = np.array([1.5 * c - 0.8 * s_, 1.5 * s_ + 0.8 * c, math.radians(6.0)])
+    seeds = np.vstack([truth + off, path[70]])
+    loc = build_localizer(m, small_settings(), seed=4, caster=caster)
+    rays = loc.select_rays(pts, loc.rng, sensor_height_m=loc.sensor_height_m)
+    poses, bad, inl = loc._grid_look(rays, seeds)
+    assert len(poses) == len(bad) == len(inl) and len(poses) % 2 == 0
+    first = poses[: len(poses) // 2]
+    j = int(np.argmin(bad[: len(poses) // 2]))
+    assert np.hypot(*(first[j, :2] - truth[:2])) < 0.25
+    assert abs((first[j, 2] - truth[2] + math.pi) % (2 * math.pi) - math.pi) < math.radians(0.6)
+    assert bad[j] == bad.min() and inl[j] > 0.9
+    seed_bad = float(loc.scorer.score(rays, seeds[:1], loc.sensor_z(seeds[:1, :2]))[1][0])
+    assert bad[j] < seed_bad - 0.05

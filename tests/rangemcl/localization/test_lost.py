@@ -163,6 +163,77 @@ def test_a_second_look_around_the_best_places_finds_a_sharply_peaked_true_pose()
     assert np.hypot(*(op.pose[:2] - truth[:2])) > 5.0
 
 
+def test_a_given_look_replaces_the_random_rounds_of_the_second_look():
+    """Revision 15: with ``look`` (the filter's grids), the best distinct places, best first, are handed
+    to it as seeds, its poses join the candidates in place of the three random rounds, and those of them
+    near the estimate are left out."""
+    truth = np.array([50.0, 20.0, 0.3])
+
+    def score(p):
+        d = np.hypot(p[:, 0] - truth[0], p[:, 1] - truth[1]) + 10.0 * np.abs(
+            np.angle(np.exp(1j * (p[:, 2] - truth[2])))
+        )
+        return 0.1 + 0.3 * np.minimum(d, 1.0), np.exp(-d / 0.3)
+
+    seen = []
+
+    def look(seeds):  # a 5 x 5 grid of 0.5 m around each seed, at its yaw, and the truth's yaw
+        seen.append(seeds.copy())
+        g = np.arange(-1.0, 1.01, 0.5)
+        gx, gy = np.meshgrid(g, g)
+        out = [
+            np.column_stack([s[0] + gx.ravel(), s[1] + gy.ravel(), np.full(gx.size, yaw)])
+            for s in seeds
+            for yaw in (s[2], truth[2])
+        ]
+        p = np.vstack(out)
+        bad, inl = score(p)
+        return p, bad, inl
+
+    wrong = np.array([130.0, 20.0, 0.3])
+    cand = np.array([[51.0, 20.5, 0.33], [51.5, 21.5, 0.33], [129.0, 20.0, 0.3], [-80.0, 5.0, 1.0]])
+    polish = Polish(places=8, per_place=48, sigma_xy_m=0.3, sigma_yaw_deg=1.0, rng=np.random.default_rng(6))
+    plain = second_opinion(score, wrong, 0.35, 0.45, cand, min_distance_m=5.0)
+    assert not plain.better
+    op = second_opinion(score, wrong, 0.35, 0.45, cand, min_distance_m=5.0, polish=polish, look=look)
+    assert op.better and np.hypot(*(op.pose[:2] - truth[:2])) < 1e-9 and op.inliers > 0.99
+    # one call; its seeds: the two places farther than 5 m from the estimate at least 3 m apart, best first
+    assert len(seen) == 1 and np.allclose(seen[0], [[51.0, 20.5, 0.33], [-80.0, 5.0, 1.0]])
+    assert op.candidates == 3 + 2 * 2 * 25
+    # around a seed near the estimate, none of the look's poses is taken
+    near = second_opinion(score, truth, 0.1, 0.99, cand, min_distance_m=5.0, polish=polish, look=look)
+    assert np.hypot(*(near.pose[:2] - truth[:2])) > 5.0
+
+
+def test_the_rival_is_confirmed_before_a_new_place_that_fits_a_little_more():
+    """Revision 15: two places fit the scan clearly better than the filter's; the look-alike a little
+    more than the true place. Without a rival the look-alike is the opinion; with the rival (the last
+    better place moved with the odometry) near the true place, the true place is, as long as it is better
+    itself; a rival where nothing fits better leaves the verdict to all the candidates."""
+    true_place = np.array([50.0, 20.0, 0.3])
+    look_alike = np.array([-120.0, 60.0, 2.0])
+
+    def score(p):
+        d1 = np.hypot(p[:, 0] - true_place[0], p[:, 1] - true_place[1])
+        d2 = np.hypot(p[:, 0] - look_alike[0], p[:, 1] - look_alike[1])
+        inl = np.maximum(0.9 * np.exp(-d1), 0.95 * np.exp(-d2))
+        return 0.6 - 0.4 * inl, inl
+
+    cand = np.array([true_place, look_alike, [300.0, 0.0, 0.0]])
+    wrong = np.array([130.0, 20.0, 0.3])
+    op = second_opinion(score, wrong, 0.45, 0.5, cand, min_distance_m=5.0)
+    assert op.better and np.allclose(op.pose, look_alike)
+    rival = true_place + np.array([1.0, 0.5, 0.05])
+    op = second_opinion(score, wrong, 0.45, 0.5, cand, min_distance_m=5.0, rival=rival)
+    assert op.better and np.allclose(op.pose, true_place)
+    turned = true_place + np.array([1.0, 0.5, math.radians(30.0)])  # beyond rival_deg: not that place
+    op = second_opinion(score, wrong, 0.45, 0.5, cand, min_distance_m=5.0, rival=turned)
+    assert np.allclose(op.pose, look_alike)
+    # the true place no longer better (the filter fits 0.8): the rival is not taken, the verdict is all's
+    op = second_opinion(score, wrong, 0.2, 0.8, cand, min_distance_m=5.0, rival=rival)
+    assert np.allclose(op.pose, look_alike) and not op.better
+
+
 def test_the_look_at_the_past_compares_each_place_at_its_best():
     """history_fit: a place found 1 m and 2 degrees from a sharply peaked true pose is scored at its best
     (the polish finds the peak), a place that fits nowhere near stays low, and no evidence is NaN."""
