@@ -204,8 +204,8 @@ class RecoverySettings:
     # converges earlier, and the MQ-8's first one there, at the true place, was called lost 7 updates
     # later without it; docs/results/v12, v13, v14)
     history_skips_suspicion: bool = True  # ... on the scans before the current suspicion (its bad updates
-    # left out; revision 15: a bus alongside an MQ-8 hid the far rays at the true pose for 15 updates on
-    # town_medium, and over a past that held them a place 200 m off fit within 0.03 of it; docs/results/v15)
+    # left out; revision 15: a vehicle alongside an MQ-8 hid the far rays at the true pose for 15 updates
+    # on town_medium, and over a past that held them a place 171 m off fit within 0.03 of it; v15 results)
     opinion_min_range_m: float = 5.0  # the opinion compares rays measured at least this far (a
     # vehicle alongside hid 63 % of the structure rays at 2.5 m on the town_medium suite, and a far-off
     # place fit those near rays better than the true one)

@@ -963,9 +963,10 @@ class MonteCarloLocalizer:
         """Each pose's ``(M, 3)`` mean inlier share over the far rays of the previous updates' scans (up to
         ``history_updates``), the pose moved back along the odometry to each of them; NaN with fewer than
         half of them to compare (no scan, too few far rays). With ``history_skips_suspicion`` (revision
-        15) the scans of the watch's current run of bad updates are left out: the past is the one before
-        the suspicion (a bus alongside an MQ-8 at the true pose hid its far rays for 15 updates on the
-        `town_medium` suite, and over a past that held them a place 200 m off fit within 0.03 of it)."""
+        15) the watch's current run of bad updates is left out: as many scans as it counts (the current
+        update included), those of its updates and the one just before them: the past is the one before
+        the suspicion (a vehicle alongside an MQ-8 at the true pose hid its far rays for 15 updates on the
+        `town_medium` suite, and over a past that held them a place 171 m off fit within 0.03 of it)."""
         p = np.asarray(poses, np.float64).reshape(-1, 3)
         total = np.zeros(len(p))
         count = 0
