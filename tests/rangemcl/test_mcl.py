@@ -161,20 +161,36 @@ def test_true_pose_scores_above_perturbed_poses_through_the_filter(world):
     assert d[0] < 0.05 and (d[1:] > d[0] + 0.05).all()
 
 
+def _tracking_with_history(world, updates: int, first: int, last: int, seen=None, **recovery):
+    """A filter started at the drive's first true pose with the look at the past over ``updates``
+    updates (and the given ``recovery`` settings), stepped along the true odometry over frames ``first``
+    to ``last``; ``seen(k)`` is the pose each scan is taken from (default the true one)."""
+    _town, caster, m, path, _geo = world
+    s = small_settings()
+    s.recovery.history_updates = updates
+    for key, value in recovery.items():
+        setattr(s.recovery, key, value)
+    loc = build_localizer(m, s, seed=3, caster=caster)
+    loc.start_at(path[0])
+    _drive(loc, world, first, last, seen)
+    return loc, s
+
+
+def _drive(loc, world, first: int, last: int, seen=None) -> None:
+    town, caster, _m, path, geo = world
+    for k in range(first, last + 1):
+        pose = path[k] if seen is None else seen(k)
+        loc.step(se2_between(path[k - 1], path[k]), scan_at(town, caster, geo, pose))
+
+
 def test_the_look_at_the_past_moves_poses_back_along_the_odometry(world, tmp_path):
     """recovery.history_updates: the filter keeps the recent updates' rays and odometry; the true pose of
     now, moved back along the odometry, fits each past scan (nearly all far rays inliers), a pose 3 m
     to the side fits them clearly worse, and with too few past scans there is no verdict (NaN)."""
     town, caster, m, path, geo = world
-    s = small_settings()
-    s.recovery.history_updates = 20
-    loc = build_localizer(m, s, seed=3, caster=caster)
-    loc.start_at(path[0])
-    for k in range(1, 6):
-        loc.step(se2_between(path[k - 1], path[k]), scan_at(town, caster, geo, path[k]))
+    loc, s = _tracking_with_history(world, 20, 1, 5)
     assert np.isnan(loc._history_inliers(path[5][None])).all()  # 5 past scans of the 20: no verdict
-    for k in range(6, 40):
-        loc.step(se2_between(path[k - 1], path[k]), scan_at(town, caster, geo, path[k]))
+    _drive(loc, world, 6, 39)
     assert len(loc._recent) == 39 and loc._recent.maxlen == 21 + s.recovery.max_vetoed_updates
     fit = loc._history_inliers(np.array([path[39], path[39] + [0.0, 3.0, 0.0], path[39] + [0.0, 0.0, 0.1]]))
     assert fit[0] > 0.9 and fit[1] < fit[0] - 0.2 and fit[2] < fit[0] - 0.2
@@ -198,14 +214,12 @@ def test_the_look_at_the_past_leaves_out_the_scans_of_the_suspicion(world):
     (here 8 scans taken 3 m to the side of where the odometry says, as if hidden or changed) are left out
     of the look at the past, so the true pose fits the past before them; with the skip off they drag its
     fit down."""
-    town, caster, m, path, geo = world
-    s = small_settings()
-    s.recovery.history_updates = 20
-    loc = build_localizer(m, s, seed=3, caster=caster)
-    loc.start_at(path[0])
-    for k in range(1, 40):
-        seen = path[k] + ([0.0, 3.0, 0.0] if k >= 32 else 0.0)  # the last 8 scans: not the truth's
-        loc.step(se2_between(path[k - 1], path[k]), scan_at(town, caster, geo, seen))
+    _town, _caster, _m, path, _geo = world
+
+    def seen(k):  # the last 8 scans: not the truth's
+        return path[k] + ([0.0, 3.0, 0.0] if k >= 32 else 0.0)
+
+    loc, _s = _tracking_with_history(world, 20, 1, 39, seen)
     loc.lost.watch.bad_updates = 8  # the suspicion's updates (the current one and the 7 before)
     skipped = loc._history_inliers(path[39][None])[0]
     loc.lost.history_skips_suspicion = False
@@ -223,15 +237,10 @@ def test_the_look_at_the_past_is_taken_in_the_probation_unless_left_out(world):
     place; the look at the past (recovery.history_updates) is taken after the probation, where the true
     place, which explained the past scans, stays better, and in the probation after a convergence
     (revision 14; revision 13 left it out there: history_in_probation false)."""
-    town, caster, m, path, geo = world
-    s = small_settings()
-    s.recovery.history_updates = 10
-    s.recovery.history_min_inliers = 0.0  # (asked at any fit of the filter's own place)
-    loc = build_localizer(m, s, seed=3, caster=caster)
+    town, caster, _m, path, geo = world
+    # (history_min_inliers 0: the look is asked at any fit of the filter's own place)
+    loc, _s = _tracking_with_history(world, 10, 1, 24, history_min_inliers=0.0)
     assert loc.lost.history_in_probation is True  # the default (revision 14)
-    loc.start_at(path[0])
-    for k in range(1, 25):
-        loc.step(se2_between(path[k - 1], path[k]), scan_at(town, caster, geo, path[k]))
     pts = scan_at(town, caster, geo, path[24])
     rays = loc.select_rays(pts, loc.rng, sensor_height_m=loc.sensor_height_m)
     wrong = path[24] + np.array([12.0, 0.0, 0.0])
