@@ -223,7 +223,8 @@ class RefineSettings:
     max_residual_m: float = 0.5  # a ray takes part when its range is within this of the map's surface
     huber_m: float = 0.1  # Huber threshold of the point-to-plane residual
     min_inliers: int = 30  # fewer rays taking part: no refinement
-    min_information: float = 10.0  # directions the scan constrains less than this are left alone
+    min_information: float = 25.0  # directions the scan constrains less than this are left alone (10
+    # before revision 16: an 8-beam scan's few surfaces across a street then pulled the pose along it)
     lever_m: float = 10.0  # yaw compared with translation at this distance
     min_hit_height_m: float | None = 2.0  # rays hitting the map lower above the ground take no part
     # (parked cars, people: they change between drives), unless too few hit higher; None: every ray

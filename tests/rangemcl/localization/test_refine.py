@@ -110,7 +110,7 @@ def test_the_filter_refuses_a_refinement_outside_its_cloud(yard):
 
     def first_update(sigma_m):
         st = LocalizerSettings()
-        st.observation = ObservationSettings(rays=400, max_range_m=40.0)
+        st.observation = ObservationSettings(rays=1000, max_range_m=40.0)  # every direction constrained
         st.particles.tracking_sigma_xy_m = sigma_m
         st.particles.tracking_sigma_yaw_deg = 0.1
         st.refine.max_residual_m = 1.0  # reach the truth from 0.5 m
@@ -148,6 +148,29 @@ def test_low_hits_can_be_left_out_so_a_moved_parked_car_does_not_pull():
     assert low is not None and np.array_equal(low.pose, pulled.pose)
 
 
+def test_a_few_rays_on_one_low_surface_do_not_move_the_pose_along_the_street():
+    """An 8-beam scan (MQ-8, 500 rays) sees nothing above 2 m, so all its hits take part; in a street of
+    walls the only surface across the street is a low barrier, which in the scan stands 0.3 m further on
+    (as an unmapped vehicle close before a mapped surface can). Its information along the street (16) is
+    below the default floor of 25 (revision 16): the street's axis is left where it was; with revision
+    15's floor of 10 the barrier alone pulled the pose the whole 0.3 m, as on ``town_large`` (MQ-8 from
+    frame 467: two pulls of 0.19 and 0.23 m at along-street information 13.3 and 13.4)."""
+    street = [
+        meshgen.grid_patch((-60.0, -10.0, 0.0), (120.0, 0, 0), (0, 20.0, 0), 30, 5),
+        meshgen.box((120.0, 0.5, 6.0), (0.0, -5.0, 3.0), cell_m=4.0),
+        meshgen.box((120.0, 0.5, 6.0), (0.0, 5.0, 3.0), cell_m=4.0),
+    ]
+    map_caster, _v, _f = _world([*street, meshgen.box((0.5, 9.0, 1.4), (8.0, 0.0, 0.7), cell_m=0.5)])
+    scan_caster, _v, _f = _world([*street, meshgen.box((0.5, 9.0, 1.4), (8.3, 0.0, 0.7), cell_m=0.5)])
+    d, r = _rays(scan_caster, np.zeros(3), spec="mq-8", count=500)
+    held = ScanRefiner(map_caster, min_hit_height_m=2.0).refine(d, r, np.zeros(3), HEIGHT, ground_z=0.0)
+    assert held is not None and held.constrained == 2 and abs(held.pose[0]) < 1e-3
+    assert abs(held.pose[1]) < 0.01
+    old = ScanRefiner(map_caster, min_hit_height_m=2.0, min_information=10.0)
+    pulled = old.refine(d, r, np.zeros(3), HEIGHT, ground_z=0.0)
+    assert pulled is not None and pulled.constrained == 3 and pulled.pose[0] == pytest.approx(-0.3, abs=0.02)
+
+
 def test_after_a_convergence_the_low_hits_pull_in_an_offset_along_the_street():
     """A cloud that has just converged 0.4 m off along a street of tall walls (as a global search can
     leave it): in the first updates after the convergence the refinement uses the low surfaces too (here
@@ -156,7 +179,9 @@ def test_after_a_convergence_the_low_hits_pull_in_an_offset_along_the_street():
     The rays are drawn with ``tall_share: 0`` (revision 8's draw): with revision 9's default, 60 % of the
     structure rays go to the walls and the barrier's few rays leave the along-street direction below the
     refiner's information floor, so the offset is not pulled in (the estimate stays 0.41 m off); a street
-    constrained along its axis by low surfaces only is where revision 9 gives up this pull."""
+    constrained along its axis by low surfaces only is where revision 9 gives up this pull. 3000 rays: with
+    1000 the barrier's information along the street (11) is below revision 16's floor of 25, and the
+    offset stays as it came."""
     parts = [
         meshgen.grid_patch((-60.0, -10.0, 0.0), (120.0, 0, 0), (0, 20.0, 0), 30, 5),
         meshgen.box((120.0, 0.5, 6.0), (0.0, -5.0, 3.0), cell_m=4.0),
@@ -175,7 +200,7 @@ def test_after_a_convergence_the_low_hits_pull_in_an_offset_along_the_street():
 
     def first_update(settle):
         st = LocalizerSettings()
-        st.observation = ObservationSettings(rays=1000, max_range_m=40.0, tall_share=0.0)
+        st.observation = ObservationSettings(rays=3000, max_range_m=40.0, tall_share=0.0)
         st.particles.tracking_sigma_xy_m = 0.3
         st.particles.tracking_sigma_yaw_deg = 0.1
         st.refine.max_residual_m = 1.0
