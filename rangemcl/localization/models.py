@@ -46,13 +46,13 @@ class ScoringModel:
     last_inliers: np.ndarray | None = None
     inlier_m = 0.3
 
+    def score(self, rays, particles: np.ndarray, sensor_z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
 
 def inlier_share(scores: dict) -> np.ndarray:
     """The share of the structure rays that agree with the map within the inlier distance."""
     return scores["structure"].astype(np.float64)
-
-    def score(self, rays, particles: np.ndarray, sensor_z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        raise NotImplementedError
 
 
 class RangeModel(ScoringModel):
