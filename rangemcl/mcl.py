@@ -232,6 +232,9 @@ class RefineSettings:
     # when the cloud's place along a street may still be off by decimetres that only low surfaces fix
     gate_m: float = 0.3  # a correction is taken when within this + 2 x the cloud's spread (x, y) ...
     gate_deg: float = 1.0  # ... and this + 2 x the cloud's yaw spread; else refused and counted
+    weak_information: float | None = None  # directions with information from min_information up to this
+    # move at most weak_step_m per update (a larger step along them is left out); None: no such band
+    weak_step_m: float = 0.1
 
 
 @dataclass
@@ -389,6 +392,7 @@ class LocalizerSettings:
             "refine.min_information": self.refine.min_information,
             "refine.gate_m": self.refine.gate_m,
             "refine.gate_deg": self.refine.gate_deg,
+            "refine.weak_step_m": self.refine.weak_step_m,
         }
         for key, value in non_negative.items():
             if not (math.isfinite(value) and value >= 0):
@@ -402,6 +406,12 @@ class LocalizerSettings:
         for key in ("history_margin", "history_min_inliers"):
             if not (math.isfinite(getattr(r, key)) and 0 <= getattr(r, key) <= 1):
                 raise InputError(f"{where}: recovery.{key} must be in [0, 1], got {getattr(r, key)}")
+        weak = self.refine.weak_information
+        if weak is not None and not (math.isfinite(weak) and weak >= self.refine.min_information):
+            raise InputError(
+                f"{where}: refine.weak_information must be >= refine.min_information "
+                f"({self.refine.min_information}) or null, got {weak}"
+            )
         sat = r.saturated_badness_ratio
         if sat is not None and not (math.isfinite(sat) and 0 < sat < 1):
             raise InputError(
@@ -611,6 +621,8 @@ def build_localizer(
             min_information=f.min_information,
             lever_m=f.lever_m,
             min_hit_height_m=f.min_hit_height_m,
+            weak_information=f.weak_information,
+            weak_step_m=f.weak_step_m,
         )
         if f.enabled
         else None

@@ -50,6 +50,7 @@ class Refinement:
     start_cost: float  # ... at the start pose
     constrained: int  # directions (0..3) the scan constrains at the returned pose
     iterations: int  # Gauss-Newton steps that led to the returned pose (the best one visited)
+    held: int = 0  # weakly constrained directions whose step was beyond ``weak_step_m`` and left out
 
 
 class ScanRefiner:
@@ -67,6 +68,10 @@ class ScanRefiner:
         min_hit_height_m: rays whose map hit lies lower than this above the ground under the sensor take
             no part (None: all heights): parked cars and people, which change between drives, are low.
             Where fewer than ``min_inliers`` rays hit higher (an 8-beam sensor looking down), all take part.
+        weak_information: directions with information from ``min_information`` up to this are weakly
+            constrained: their part of the correction is taken only when it is at most ``weak_step_m``,
+            else left out (``held``); None: no such band (every direction above the floor moves freely).
+        weak_step_m: see ``weak_information``.
     """
 
     def __init__(
@@ -81,6 +86,8 @@ class ScanRefiner:
         lever_m: float = 10.0,
         min_incidence: float = 0.2,
         min_hit_height_m: float | None = None,
+        weak_information: float | None = None,
+        weak_step_m: float = 0.1,
     ):
         self.caster = caster
         self.iterations = int(iterations)
@@ -91,6 +98,8 @@ class ScanRefiner:
         self.lever_m = float(lever_m)
         self.min_incidence = float(min_incidence)
         self.min_hit_height_m = None if min_hit_height_m is None else float(min_hit_height_m)
+        self.weak_information = None if weak_information is None else float(weak_information)
+        self.weak_step_m = float(weak_step_m)
 
     def _linearize(self, directions, ranges, pose, sensor_z, ground_z=None):
         """Residuals, Jacobians (yaw column scaled by 1/lever) and Huber weights of the rays that take
@@ -151,6 +160,8 @@ class ScanRefiner:
             h = jac.T @ (w[:, None] * jac)
             g = jac.T @ (w * e)
             vals, vecs = np.linalg.eigh(h)
+            if it == 1:
+                start_eigen = (vals, vecs)  # how the scan constrains each direction where it starts
             keep = vals >= self.min_information
             constrained = int(keep.sum())
             if best is None or cost < best[0]:
@@ -168,6 +179,14 @@ class ScanRefiner:
         cost, x, e, constrained, it = best
         corr = x - start
         corr[2] = wrap_angle(corr[2])
+        held = 0
+        if self.weak_information is not None and np.any(corr):
+            corr, held = self._hold_weak_steps(*start_eigen, corr)
+            if held:
+                x = start + corr
+                x[2] = wrap_angle(x[2])
+                e, _jac, _w = self._linearize(directions, ranges, x, sensor_z, ground_z)
+                cost = self._cost(e, len(ranges))
         return Refinement(
             pose=x,
             correction=corr,
@@ -178,4 +197,20 @@ class ScanRefiner:
             start_cost=start_cost,
             constrained=constrained,
             iterations=it,
+            held=held,
         )
+
+    def _hold_weak_steps(self, vals, vecs, corr):
+        """``corr`` without its parts along the weakly constrained directions (eigenvalues ``vals``,
+        eigenvectors ``vecs`` of the information at the start pose; from ``min_information`` up to
+        ``weak_information``) that exceed ``weak_step_m``, and how many were left out."""
+        scaled = corr.copy()
+        scaled[2] *= self.lever_m
+        along = vecs.T @ scaled
+        hold = (vals < self.weak_information) & (np.abs(along) > self.weak_step_m)
+        if not hold.any():
+            return corr, 0
+        along[hold] = 0.0
+        out = vecs @ along
+        out[2] /= self.lever_m
+        return out, int(hold.sum())

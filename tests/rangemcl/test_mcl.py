@@ -6,12 +6,14 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from rangemcl import meshgen
 from rangemcl.checkpoint import restore_state, save_state
+from rangemcl.config import load_config
 from rangemcl.dataset import SequenceWriter
 from rangemcl.errors import InputError
 from rangemcl.evaluate import evaluate_results, localization_metrics
@@ -381,6 +383,14 @@ def test_settings_are_checked(world):
             s.check()
     s.recovery.saturated_badness_ratio = 0.75
     s.check()
+    for bad in (5.0, float("nan")):  # below the floor (25), or not a number
+        s.refine.weak_information = bad
+        with pytest.raises(InputError, match="weak_information"):
+            s.check()
+    s.refine.weak_information = None
+    s.refine.weak_step_m = -0.1
+    with pytest.raises(InputError, match="weak_step_m"):
+        s.check()
     loc = build_localizer(m, LocalizerSettings(), caster=caster)
     with pytest.raises(InputError, match="no particles"):
         loc.step(np.zeros(3), None)
@@ -687,3 +697,10 @@ def test_the_second_opinions_grid_look_lands_on_the_likelihoods_peak(world):
     assert bad[j] == bad.min() and inl[j] > 0.9
     seed_bad = float(loc.scorer.score(rays, seeds[:1], loc.sensor_z(seeds[:1, :2]))[1][0])
     assert bad[j] < seed_bad - 0.05
+
+
+@pytest.mark.parametrize(
+    "path", sorted((Path(__file__).parents[2] / "configs").glob("*.yaml")), ids=lambda p: p.name
+)
+def test_the_shipped_configs_load_and_check(path):
+    load_config(LocalizerSettings, path).check(str(path))

@@ -171,6 +171,36 @@ def test_a_few_rays_on_one_low_surface_do_not_move_the_pose_along_the_street():
     assert pulled is not None and pulled.constrained == 3 and pulled.pose[0] == pytest.approx(-0.3, abs=0.02)
 
 
+@pytest.mark.parametrize("moved_m", [0.3, 0.05])
+def test_a_weak_direction_takes_small_steps_only(moved_m):
+    """The street of the test above with ``weak_information`` (the band from the floor 10 up to 25, where
+    the barrier's information of 16 lies): the barrier moved 0.3 m is a step beyond ``weak_step_m``
+    (0.1 m), held back (the axis stays, the walls' direction still aligned); moved 0.05 m, the step is
+    taken as without the band."""
+    street = [
+        meshgen.grid_patch((-60.0, -10.0, 0.0), (120.0, 0, 0), (0, 20.0, 0), 30, 5),
+        meshgen.box((120.0, 0.5, 6.0), (0.0, -5.0, 3.0), cell_m=4.0),
+        meshgen.box((120.0, 0.5, 6.0), (0.0, 5.0, 3.0), cell_m=4.0),
+    ]
+    map_caster, _v, _f = _world([*street, meshgen.box((0.5, 9.0, 1.4), (8.0, 0.0, 0.7), cell_m=0.5)])
+    scan_caster, _v, _f = _world(
+        [*street, meshgen.box((0.5, 9.0, 1.4), (8.0 + moved_m, 0.0, 0.7), cell_m=0.5)]
+    )
+    d, r = _rays(scan_caster, np.zeros(3), spec="mq-8", count=500)
+    start = np.array([0.0, 0.2, 0.0])  # 0.2 m across the street: the walls pull it back
+    kw = dict(min_hit_height_m=2.0, min_information=10.0)
+    free = ScanRefiner(map_caster, **kw).refine(d, r, start, HEIGHT, ground_z=0.0)
+    band = ScanRefiner(map_caster, weak_information=25.0, weak_step_m=0.1, **kw)
+    ref = band.refine(d, r, start, HEIGHT, ground_z=0.0)
+    assert free is not None and ref is not None
+    assert free.pose[0] == pytest.approx(-moved_m, abs=0.02) and abs(free.pose[1]) < 0.01
+    assert abs(ref.pose[1]) < 0.01  # across the street: strongly constrained, taken
+    if moved_m > 0.1:
+        assert ref.held == 1 and abs(ref.pose[0]) < 0.01
+    else:
+        assert ref.held == 0 and np.array_equal(ref.pose, free.pose)
+
+
 def test_after_a_convergence_the_low_hits_pull_in_an_offset_along_the_street():
     """A cloud that has just converged 0.4 m off along a street of tall walls (as a global search can
     leave it): in the first updates after the convergence the refinement uses the low surfaces too (here
