@@ -127,17 +127,26 @@ def test_the_filter_refuses_a_refinement_outside_its_cloud(yard):
     assert info.refined == 1 and loc.refinements == 1
 
 
-def test_low_hits_can_be_left_out_so_a_moved_parked_car_does_not_pull():
-    """In a street of tall walls the only along-street constraint is a low box (a parked car); in the scan
-    it stands 0.3 m further on. With every hit taking part the refinement drags the pose along the street;
-    with ``min_hit_height_m`` above the box the street's axis is left where it was."""
+def _street_with_a_low_box(width_m: float, moved_m: float):
+    """Map and scan casters of a street between 6 m walls whose only surface across it is a low box (0.5 m
+    deep, ``width_m`` wide, 1.4 m tall) 8 m ahead in the map and ``moved_m`` further on in the scan."""
     street = [
         meshgen.grid_patch((-60.0, -10.0, 0.0), (120.0, 0, 0), (0, 20.0, 0), 30, 5),
         meshgen.box((120.0, 0.5, 6.0), (0.0, -5.0, 3.0), cell_m=4.0),
         meshgen.box((120.0, 0.5, 6.0), (0.0, 5.0, 3.0), cell_m=4.0),
     ]
-    map_caster, _v, _f = _world([*street, meshgen.box((0.5, 4.0, 1.4), (8.0, 0.0, 0.7), cell_m=0.5)])
-    scan_caster, _v, _f = _world([*street, meshgen.box((0.5, 4.0, 1.4), (8.3, 0.0, 0.7), cell_m=0.5)])
+    casters = [
+        _world([*street, meshgen.box((0.5, width_m, 1.4), (8.0 + dx, 0.0, 0.7), cell_m=0.5)])[0]
+        for dx in (0.0, moved_m)
+    ]
+    return casters[0], casters[1]
+
+
+def test_low_hits_can_be_left_out_so_a_moved_parked_car_does_not_pull():
+    """In a street of tall walls the only along-street constraint is a low box (a parked car); in the scan
+    it stands 0.3 m further on. With every hit taking part the refinement drags the pose along the street;
+    with ``min_hit_height_m`` above the box the street's axis is left where it was."""
+    map_caster, scan_caster = _street_with_a_low_box(4.0, 0.3)
     d, r = _rays(scan_caster, np.zeros(3), spec="hdl-64e", count=20000)
     pulled = ScanRefiner(map_caster).refine(d, r, np.zeros(3), HEIGHT, ground_z=0.0)
     assert pulled is not None and pulled.constrained == 3 and pulled.pose[0] < -0.1
@@ -155,13 +164,7 @@ def test_a_few_rays_on_one_low_surface_do_not_move_the_pose_along_the_street():
     below the default floor of 25 (revision 16): the street's axis is left where it was; with revision
     15's floor of 10 the barrier alone pulled the pose the whole 0.3 m, as on ``town_large`` (MQ-8 from
     frame 467: two pulls of 0.19 and 0.23 m at along-street information 13.3 and 13.4)."""
-    street = [
-        meshgen.grid_patch((-60.0, -10.0, 0.0), (120.0, 0, 0), (0, 20.0, 0), 30, 5),
-        meshgen.box((120.0, 0.5, 6.0), (0.0, -5.0, 3.0), cell_m=4.0),
-        meshgen.box((120.0, 0.5, 6.0), (0.0, 5.0, 3.0), cell_m=4.0),
-    ]
-    map_caster, _v, _f = _world([*street, meshgen.box((0.5, 9.0, 1.4), (8.0, 0.0, 0.7), cell_m=0.5)])
-    scan_caster, _v, _f = _world([*street, meshgen.box((0.5, 9.0, 1.4), (8.3, 0.0, 0.7), cell_m=0.5)])
+    map_caster, scan_caster = _street_with_a_low_box(9.0, 0.3)
     d, r = _rays(scan_caster, np.zeros(3), spec="mq-8", count=500)
     held = ScanRefiner(map_caster, min_hit_height_m=2.0).refine(d, r, np.zeros(3), HEIGHT, ground_z=0.0)
     assert held is not None and held.constrained == 2 and abs(held.pose[0]) < 1e-3
@@ -177,15 +180,7 @@ def test_a_weak_direction_takes_small_steps_only(moved_m):
     the barrier's information of 16 lies): the barrier moved 0.3 m is a step beyond ``weak_step_m``
     (0.1 m), held back (the axis stays, the walls' direction still aligned); moved 0.05 m, the step is
     taken as without the band."""
-    street = [
-        meshgen.grid_patch((-60.0, -10.0, 0.0), (120.0, 0, 0), (0, 20.0, 0), 30, 5),
-        meshgen.box((120.0, 0.5, 6.0), (0.0, -5.0, 3.0), cell_m=4.0),
-        meshgen.box((120.0, 0.5, 6.0), (0.0, 5.0, 3.0), cell_m=4.0),
-    ]
-    map_caster, _v, _f = _world([*street, meshgen.box((0.5, 9.0, 1.4), (8.0, 0.0, 0.7), cell_m=0.5)])
-    scan_caster, _v, _f = _world(
-        [*street, meshgen.box((0.5, 9.0, 1.4), (8.0 + moved_m, 0.0, 0.7), cell_m=0.5)]
-    )
+    map_caster, scan_caster = _street_with_a_low_box(9.0, moved_m)
     d, r = _rays(scan_caster, np.zeros(3), spec="mq-8", count=500)
     start = np.array([0.0, 0.2, 0.0])  # 0.2 m across the street: the walls pull it back
     kw = dict(min_hit_height_m=2.0, min_information=10.0)
