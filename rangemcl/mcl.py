@@ -223,8 +223,7 @@ class RefineSettings:
     max_residual_m: float = 0.5  # a ray takes part when its range is within this of the map's surface
     huber_m: float = 0.1  # Huber threshold of the point-to-plane residual
     min_inliers: int = 30  # fewer rays taking part: no refinement
-    min_information: float = 25.0  # directions the scan constrains less than this are left alone (10
-    # before revision 16: an 8-beam scan's few surfaces across a street then pulled the pose along it)
+    min_information: float = 10.0  # directions the scan constrains less than this are left alone
     lever_m: float = 10.0  # yaw compared with translation at this distance
     min_hit_height_m: float | None = 2.0  # rays hitting the map lower above the ground take no part
     # (parked cars, people: they change between drives), unless too few hit higher; None: every ray
@@ -232,8 +231,9 @@ class RefineSettings:
     # when the cloud's place along a street may still be off by decimetres that only low surfaces fix
     gate_m: float = 0.3  # a correction is taken when within this + 2 x the cloud's spread (x, y) ...
     gate_deg: float = 1.0  # ... and this + 2 x the cloud's yaw spread; else refused and counted
-    weak_information: float | None = None  # directions with information from min_information up to this
+    weak_information: float | None = 25.0  # directions with information from min_information up to this
     # move at most weak_step_m per update (a larger step along them is left out); None: no such band
+    # (revision 17; an 8-beam scan's few rays on one low surface pulled the pose 0.2 m along a street)
     weak_step_m: float = 0.1
 
 

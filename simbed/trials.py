@@ -90,12 +90,13 @@ class Trial:
 # roughening shrinks to 0.05 m and 0.25 degrees, and the look at the past is taken in the probation
 # again; 15: the second opinion looks around its best places with the search's grids, confirms the
 # last better place before a new one, and its look at the past leaves out the suspicion's scans; 16: the
-# refinement leaves alone a direction with information below 25 instead of 10), so
-# trials of earlier revisions (keys without "-v16")
+# refinement leaves alone a direction with information below 25 instead of 10; 17: ... back to 10, but a
+# direction with information from 10 to 25 moves by steps of at most 0.1 m), so
+# trials of earlier revisions (keys without "-v17")
 # are never taken for today's.
 # (Fresh particles at 0.1 % of the weight and only where the search holds none were measured and not
 # adopted: README; their settings are configs/search_no_cap.yaml.)
-LOCALIZER_REVISION = 16
+LOCALIZER_REVISION = 17
 
 DRIVE_FIELDS = ("scene", "sensor", "route", "variant", "actors", "drive_seed", "drive_frames")
 

@@ -18,9 +18,14 @@ back only by resampling, so the estimate lags by decimetres. Here the scan itsel
 * only the directions the scan constrains move: the normal equations are solved in the eigenbasis of
   their information matrix (yaw scaled by ``lever_m`` so that metres and radians compare), and a
   direction whose information is below ``min_information`` (a street of parallel walls along its axis) is
-  left where the particles put it. The floor is 25 since revision 16 (10 before): an 8-beam scan's few
-  rays on one low surface across a street (a vehicle just before a mapped surface) held a direction at
-  13 and pulled the pose 0.2 m along the street at each update (MQ-8 on ``town_large``).
+  left where the particles put it;
+* a weakly constrained direction (information from ``min_information`` up to ``weak_information``) moves
+  only by small steps (at most ``weak_step_m``; a larger step along it is left out, ``Refinement.held``):
+  an 8-beam scan's few rays on one low surface across a street (a vehicle just before a mapped surface)
+  held a direction at 13 and pulled the pose 0.2 m along the street at each update (MQ-8 on
+  ``town_large``, revision 15), while the few-centimetre steps that a 3 % wheel error asks for along a
+  corridor are taken (the localizer's settings turn the band on, revision 17; revision 16 raised the
+  floor to 25 instead, which also stopped those).
 
 :class:`ScanRefiner` returns the refined pose with what it rests on; the filter decides whether to take it
 (:class:`rangemcl.localization.filter.MonteCarloLocalizer`: a correction outside the cloud's own spread
@@ -82,7 +87,7 @@ class ScanRefiner:
         max_residual_m: float = 0.5,
         huber_m: float = 0.1,
         min_inliers: int = 30,
-        min_information: float = 25.0,
+        min_information: float = 10.0,
         lever_m: float = 10.0,
         min_incidence: float = 0.2,
         min_hit_height_m: float | None = None,

@@ -301,7 +301,8 @@ def test_over_a_map_within_a_budget_the_second_opinion_finds_a_place_whose_tiles
     held, so the view loads them in the background (``consult``), and once they are in, the opinion
     scores A's places as the whole map would and the filter declares itself lost, a few updates after
     the filter with the map held whole. Without ``consult`` (the view before session 11) A's places are
-    scored against tiles that are not there, and the wrong street stands."""
+    scored against tiles that are not there, and the wrong street stands (for more than three times as
+    many updates as with the whole map, if not to the end)."""
     from rangemcl.mapping.view import MapView
 
     ground = meshgen.grid_patch((-40.0, -40.0, 0.0), (260.0, 0, 0), (0, 200.0, 0), 65, 50)
@@ -350,8 +351,8 @@ def test_over_a_map_within_a_budget_the_second_opinion_finds_a_place_whose_tiles
             assert view.unscored_places > 0  # the true street's tiles were asked for, not held at first
             assert k is not None and k <= 10  # within as many updates as the whole map is allowed
             assert view.cache.peak_bytes <= view.cache.budget_bytes
-        else:
-            assert k is None
+        else:  # the wrong street stands far longer (revision 17: lost at update 37 of 50; before: not at all)
+            assert k is None or k > 3 * whole
     finally:
         view.close()
 

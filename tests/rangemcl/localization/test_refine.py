@@ -161,16 +161,24 @@ def test_a_few_rays_on_one_low_surface_do_not_move_the_pose_along_the_street():
     """An 8-beam scan (MQ-8, 500 rays) sees nothing above 2 m, so all its hits take part; in a street of
     walls the only surface across the street is a low barrier, which in the scan stands 0.3 m further on
     (as an unmapped vehicle close before a mapped surface can). Its information along the street (16) is
-    below the default floor of 25 (revision 16): the street's axis is left where it was; with revision
-    15's floor of 10 the barrier alone pulled the pose the whole 0.3 m, as on ``town_large`` (MQ-8 from
-    frame 467: two pulls of 0.19 and 0.23 m at along-street information 13.3 and 13.4)."""
+    above the floor (10) but in the weak band (up to 25): the localizer's settings (revision 17) hold the
+    0.3 m step back and the street's axis stays; the plain refiner (revision 15's settings) lets the
+    barrier pull the pose the whole 0.3 m, as on ``town_large`` (MQ-8 from frame 467: two pulls of 0.19 and
+    0.23 m at along-street information 13.3 and 13.4)."""
     map_caster, scan_caster = _street_with_a_low_box(9.0, 0.3)
     d, r = _rays(scan_caster, np.zeros(3), spec="mq-8", count=500)
-    held = ScanRefiner(map_caster, min_hit_height_m=2.0).refine(d, r, np.zeros(3), HEIGHT, ground_z=0.0)
-    assert held is not None and held.constrained == 2 and abs(held.pose[0]) < 1e-3
-    assert abs(held.pose[1]) < 0.01
-    old = ScanRefiner(map_caster, min_hit_height_m=2.0, min_information=10.0)
-    pulled = old.refine(d, r, np.zeros(3), HEIGHT, ground_z=0.0)
+    f = LocalizerSettings().refine
+    settings = ScanRefiner(
+        map_caster,
+        min_information=f.min_information,
+        weak_information=f.weak_information,
+        weak_step_m=f.weak_step_m,
+        min_hit_height_m=f.min_hit_height_m,
+    )
+    held = settings.refine(d, r, np.zeros(3), HEIGHT, ground_z=0.0)
+    assert held is not None and held.held == 1 and abs(held.pose[0]) < 1e-3 and abs(held.pose[1]) < 0.01
+    plain = ScanRefiner(map_caster, min_hit_height_m=2.0)
+    pulled = plain.refine(d, r, np.zeros(3), HEIGHT, ground_z=0.0)
     assert pulled is not None and pulled.constrained == 3 and pulled.pose[0] == pytest.approx(-0.3, abs=0.02)
 
 
@@ -205,8 +213,8 @@ def test_after_a_convergence_the_low_hits_pull_in_an_offset_along_the_street():
     structure rays go to the walls and the barrier's few rays leave the along-street direction below the
     refiner's information floor, so the offset is not pulled in (the estimate stays 0.41 m off); a street
     constrained along its axis by low surfaces only is where revision 9 gives up this pull. 3000 rays: with
-    1000 the barrier's information along the street (11) is below revision 16's floor of 25, and the
-    offset stays as it came."""
+    1000 the barrier's information along the street (11) lies in the weak band (10-25, revision 17), where
+    a 0.4 m step is held back."""
     parts = [
         meshgen.grid_patch((-60.0, -10.0, 0.0), (120.0, 0, 0), (0, 20.0, 0), 30, 5),
         meshgen.box((120.0, 0.5, 6.0), (0.0, -5.0, 3.0), cell_m=4.0),
