@@ -507,6 +507,22 @@ def prepare_rays(
     )
 
 
+def scan_refiner(caster: RayCaster, f: RefineSettings) -> ScanRefiner:
+    """The scan-to-mesh refiner that ``f`` describes (``enabled`` aside), over ``caster``'s map."""
+    return ScanRefiner(
+        caster,
+        iterations=f.iterations,
+        max_residual_m=f.max_residual_m,
+        huber_m=f.huber_m,
+        min_inliers=f.min_inliers,
+        min_information=f.min_information,
+        lever_m=f.lever_m,
+        min_hit_height_m=f.min_hit_height_m,
+        weak_information=f.weak_information,
+        weak_step_m=f.weak_step_m,
+    )
+
+
 def build_localizer(
     mesh_map: MeshMap,
     settings: LocalizerSettings | None = None,
@@ -611,22 +627,7 @@ def build_localizer(
             prior_s=m.calibration_prior_s,
         )
     f = s.refine
-    refiner = (
-        ScanRefiner(
-            caster,
-            iterations=f.iterations,
-            max_residual_m=f.max_residual_m,
-            huber_m=f.huber_m,
-            min_inliers=f.min_inliers,
-            min_information=f.min_information,
-            lever_m=f.lever_m,
-            min_hit_height_m=f.min_hit_height_m,
-            weak_information=f.weak_information,
-            weak_step_m=f.weak_step_m,
-        )
-        if f.enabled
-        else None
-    )
+    refiner = scan_refiner(caster, f) if f.enabled else None
     return MonteCarloLocalizer(
         mesh_map,
         scorer,

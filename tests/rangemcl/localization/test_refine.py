@@ -12,7 +12,7 @@ import pytest
 from rangemcl import meshgen
 from rangemcl.localization.refine import ScanRefiner
 from rangemcl.mapping.meshmap import MeshMap
-from rangemcl.mcl import LocalizerSettings, ObservationSettings, build_localizer
+from rangemcl.mcl import LocalizerSettings, ObservationSettings, build_localizer, scan_refiner
 from rangemcl.rangeimage import RangeImageGeometry
 from rangemcl.raycast import RayCaster
 from rangemcl.se2 import se2_compose, se2_inverse
@@ -167,15 +167,9 @@ def test_a_few_rays_on_one_low_surface_do_not_move_the_pose_along_the_street():
     0.23 m at along-street information 13.3 and 13.4)."""
     map_caster, scan_caster = _street_with_a_low_box(9.0, 0.3)
     d, r = _rays(scan_caster, np.zeros(3), spec="mq-8", count=500)
-    f = LocalizerSettings().refine
-    settings = ScanRefiner(
-        map_caster,
-        min_information=f.min_information,
-        weak_information=f.weak_information,
-        weak_step_m=f.weak_step_m,
-        min_hit_height_m=f.min_hit_height_m,
+    held = scan_refiner(map_caster, LocalizerSettings().refine).refine(
+        d, r, np.zeros(3), HEIGHT, ground_z=0.0
     )
-    held = settings.refine(d, r, np.zeros(3), HEIGHT, ground_z=0.0)
     assert held is not None and held.held == 1 and abs(held.pose[0]) < 1e-3 and abs(held.pose[1]) < 0.01
     plain = ScanRefiner(map_caster, min_hit_height_m=2.0)
     pulled = plain.refine(d, r, np.zeros(3), HEIGHT, ground_z=0.0)
