@@ -383,7 +383,7 @@ def test_settings_are_checked(world):
             s.check()
     s.recovery.saturated_badness_ratio = 0.75
     s.check()
-    for bad in (5.0, float("nan")):  # below the floor (25), or not a number
+    for bad in (5.0, float("nan")):  # below refine.min_information (10), or not a number
         s.refine.weak_information = bad
         with pytest.raises(InputError, match="weak_information"):
             s.check()
