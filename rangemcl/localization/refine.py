@@ -160,13 +160,11 @@ class ScanRefiner:
             if len(e) < self.min_inliers:
                 break
             cost = self._cost(e, len(ranges))
-            if it == 1:
-                start_cost = cost
             h = jac.T @ (w[:, None] * jac)
             g = jac.T @ (w * e)
             vals, vecs = np.linalg.eigh(h)
-            if it == 1:
-                start_eigen = (vals, vecs)  # how the scan constrains each direction where it starts
+            if it == 1:  # the cost, and how the scan constrains each direction, where it starts
+                start_cost, start_eigen = cost, (vals, vecs)
             keep = vals >= self.min_information
             constrained = int(keep.sum())
             if best is None or cost < best[0]:
