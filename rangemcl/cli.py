@@ -76,6 +76,7 @@ def _bag_options(
     poses: Path | None = None,
     point_time_field: str | None = None,
     scan_stamp: str | None = None,
+    truth_topic: str | None = None,
 ):
     """The bag-reading options of a command, or None when none is given."""
     from rangemcl.errors import InputError
@@ -97,6 +98,7 @@ def _bag_options(
         lidar_topic=lidar_topic,
         imu_topic=imu_topic,
         odom_topic=odom_topic,
+        truth_topic=truth_topic,
         sensor_to_base=mount,
         poses_file=None if poses is None else str(poses),
         point_time_field=point_time_field,
@@ -113,6 +115,9 @@ _PRIOR = typer.Option(
 _LIDAR_TOPIC = typer.Option(None, help="Bags: the PointCloud2 topic (default: the only one, or /points).")
 _IMU_TOPIC = typer.Option(None, help="Bags: the sensor_msgs/Imu topic (default: /imu if present).")
 _ODOM_TOPIC = typer.Option(None, help="Bags: the nav_msgs/Odometry topic (default: /odom if present).")
+_TRUTH_TOPIC = typer.Option(
+    None, help="Bags: the nav_msgs/Odometry topic of ground-truth poses (default: /ground_truth if present)."
+)
 _SENSOR_TO_BASE = typer.Option(
     None, help="Bags: the LiDAR's mounting 'x,y,z,roll,pitch,yaw' (m, deg) when TF does not give it."
 )
@@ -262,6 +267,7 @@ def build_map(
         None, help="Bags: the LiDAR's poses, TUM (by time) or KITTI (a line per scan), if not in the bag."
     ),
     lidar_topic: str = _LIDAR_TOPIC,
+    truth_topic: str = _TRUTH_TOPIC,
     sensor_to_base: str = _SENSOR_TO_BASE,
     point_time_field: str = _POINT_TIME_FIELD,
     scan_stamp: str = _SCAN_STAMP,
@@ -284,6 +290,7 @@ def build_map(
         poses=poses,
         point_time_field=point_time_field,
         scan_stamp=scan_stamp,
+        truth_topic=truth_topic,
     )
     if workers is not None:
         settings.workers = workers
@@ -353,6 +360,7 @@ def convert(
     lidar_topic: str = _LIDAR_TOPIC,
     imu_topic: str = _IMU_TOPIC,
     odom_topic: str = _ODOM_TOPIC,
+    truth_topic: str = _TRUTH_TOPIC,
     sensor_to_base: str = _SENSOR_TO_BASE,
     point_time_field: str = _POINT_TIME_FIELD,
     scan_stamp: str = _SCAN_STAMP,
@@ -364,7 +372,7 @@ def convert(
     from rangemcl.convert import convert as run
 
     bag = _bag_options(
-        lidar_topic, imu_topic, odom_topic, sensor_to_base, poses, point_time_field, scan_stamp
+        lidar_topic, imu_topic, odom_topic, sensor_to_base, poses, point_time_field, scan_stamp, truth_topic
     )
     try:
         n = run(source, out, fmt, bag_options=bag, overwrite=overwrite, progress=sys.stderr.isatty())
@@ -625,6 +633,7 @@ def localize(
     lidar_topic: str = _LIDAR_TOPIC,
     imu_topic: str = _IMU_TOPIC,
     odom_topic: str = _ODOM_TOPIC,
+    truth_topic: str = _TRUTH_TOPIC,
     sensor_to_base: str = _SENSOR_TO_BASE,
     point_time_field: str = _POINT_TIME_FIELD,
     scan_stamp: str = _SCAN_STAMP,
@@ -681,7 +690,14 @@ def localize(
         viz=viz,
         viz_out=None if viz_out is None else str(viz_out),
         bag=_bag_options(
-            lidar_topic, imu_topic, odom_topic, sensor_to_base, poses, point_time_field, scan_stamp
+            lidar_topic,
+            imu_topic,
+            odom_topic,
+            sensor_to_base,
+            poses,
+            point_time_field,
+            scan_stamp,
+            truth_topic,
         ),
         plots=plots,
         progress=sys.stderr.isatty(),

@@ -510,7 +510,7 @@ class LocalizationPipeline:
             "mode": opt.mode,
             "device": loc.caster.device,
             "seed": opt.seed,
-            "options": {k: (list(v) if isinstance(v, tuple) else v) for k, v in opt.__dict__.items()},
+            "options": asdict(opt),  # nested dataclasses (a bag's BagOptions) too; tuples become lists
             "first_frame": self.first,
             "frames": log.done,
             "frames_requested": self.last - self.first,

@@ -86,9 +86,10 @@ def test_the_mcap_is_standard_ros2(drives):
     assert seen["/tf_static"] == 1 and seen["/simbed/meta"] == 1
 
 
-def _write_with_mcap_ros2(folder_path, out) -> None:
+def _write_with_mcap_ros2(folder_path, out, *, odom_imu: bool = False) -> None:
     """The folder as an MCAP written by mcap-ros2-support: PointCloud2 (fields in another order, with
-    padding), TF static mount, ground truth."""
+    padding), TF static mount, ground truth on ``/gt``; with ``odom_imu`` also the folder's odometry on
+    ``/wheel/odom`` and its IMU roll and pitch on ``/imu/data`` (names no default picks)."""
     from mcap_ros2.writer import Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -104,9 +105,14 @@ def _write_with_mcap_ros2(folder_path, out) -> None:
     seq = open_source(folder_path)
     with open(out, "wb") as fh:
         w = Writer(fh)
-        s_pc, s_tf, s_odo = (
+        s_pc, s_tf, s_odo, s_imu = (
             schema(w, n)
-            for n in ("sensor_msgs/msg/PointCloud2", "tf2_msgs/msg/TFMessage", "nav_msgs/msg/Odometry")
+            for n in (
+                "sensor_msgs/msg/PointCloud2",
+                "tf2_msgs/msg/TFMessage",
+                "nav_msgs/msg/Odometry",
+                "sensor_msgs/msg/Imu",
+            )
         )
         for i in range(len(seq)):
             ns = stamp_ns(seq.times[i])
@@ -139,22 +145,40 @@ def _write_with_mcap_ros2(folder_path, out) -> None:
                 "row_step": 32 * len(pts), "data": rec.tobytes(), "is_dense": True,
             }  # fmt: skip
             w.write_message("/velodyne_points", s_pc, msg, log_time=ns, publish_time=ns)
-            T = seq.poses[i]
-            q = quat_from_matrix(T[:3, :3])
-            pose = {
-                "position": dict(zip("xyz", T[:3, 3].tolist(), strict=True)),
-                "orientation": dict(zip("xyzw", q.tolist(), strict=True)),
-            }
-            odo = {
-                "header": {"stamp": stamp, "frame_id": "map"},
-                "child_frame_id": "base_link",
-                "pose": {"pose": pose, "covariance": [0.0] * 36},
-                "twist": {
-                    "twist": {"linear": {"x": 0, "y": 0, "z": 0}, "angular": {"x": 0, "y": 0, "z": 0}},
-                    "covariance": [0.0] * 36,
-                },
-            }
-            w.write_message("/gt", s_odo, odo, log_time=ns, publish_time=ns)
+
+            def odometry(T, frame):
+                q = quat_from_matrix(T[:3, :3])
+                pose = {
+                    "position": dict(zip("xyz", T[:3, 3].tolist(), strict=True)),
+                    "orientation": dict(zip("xyzw", q.tolist(), strict=True)),
+                }
+                zero = {"x": 0, "y": 0, "z": 0}
+                return {
+                    "header": {"stamp": stamp, "frame_id": frame},
+                    "child_frame_id": "base_link",
+                    "pose": {"pose": pose, "covariance": [0.0] * 36},
+                    "twist": {"twist": {"linear": zero, "angular": zero}, "covariance": [0.0] * 36},
+                }
+
+            w.write_message("/gt", s_odo, odometry(seq.poses[i], "map"), log_time=ns, publish_time=ns)
+            if odom_imu:
+                odo = odometry(seq.odometry[i], "odom")
+                w.write_message("/wheel/odom", s_odo, odo, log_time=ns, publish_time=ns)
+                roll, pitch = seq.imu_roll_pitch[i]
+                cr, sr, cp, sp = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch)
+                R = np.array([[cp, sp * sr, sp * cr], [0, cr, -sr], [-sp, cp * sr, cp * cr]])  # Ry @ Rx
+                q = quat_from_matrix(R)
+                vec = {"x": 0.0, "y": 0.0, "z": 0.0}
+                imu = {
+                    "header": {"stamp": stamp, "frame_id": "base_link"},
+                    "orientation": dict(zip("xyzw", q.tolist(), strict=True)),
+                    "orientation_covariance": [1e-6, 0, 0, 0, 1e-6, 0, 0, 0, 1e3],
+                    "angular_velocity": vec,
+                    "angular_velocity_covariance": [-1.0] + [0.0] * 8,
+                    "linear_acceleration": vec,
+                    "linear_acceleration_covariance": [0.0] * 9,
+                }
+                w.write_message("/imu/data", s_imu, imu, log_time=ns, publish_time=ns)
             if i == 0:
                 identity = {
                     "translation": {"x": 0.0, "y": 0.0, "z": 0.0},
@@ -200,6 +224,43 @@ def test_localizing_the_bag_gives_the_folders_trajectory(drives, small_town_map,
     assert runs["kitti"].shape == (FRAMES, 12)
     assert np.allclose(runs["mcap"], runs["kitti"], atol=1e-6, rtol=0)
     assert summary["odometry_source"].startswith("/odom")
+
+
+def test_localize_with_every_topic_option(drives, small_town_map, tmp_path):
+    """``rangemcl localize`` with every bag option that names a topic, on a bag written by rosbags (our
+    recorder) and on one written by mcap-ros2-support whose topics no default would pick: both finish with
+    their summary and metrics, the options recorded in the summary, and the trajectory of the KITTI folder
+    of the same drive (the named topics are read, not the defaults)."""
+    pytest.importorskip("mcap_ros2")
+    _, map_dir = small_town_map
+    other = tmp_path / "other.mcap"
+    _write_with_mcap_ros2(drives["kitti"], other, odom_imu=True)
+    cfg = tmp_path / "rays.yaml"
+    cfg.write_text("observation:\n  rays: 200\n")
+    start = open_source(drives["kitti"]).poses[0]
+    pose = f"{start[0, 3]},{start[1, 3]},{np.arctan2(start[1, 0], start[0, 0])}"
+    common = ["--map", map_dir, "--mode", "tracking", "--seed", "4", "--threads", "2", "--no-plots"]
+    common += ["--config", cfg, "--init-pose", pose]
+    topics = {
+        drives["rosbag2"]: ("/points", "/odom", "/imu", "/ground_truth"),
+        other: ("/velodyne_points", "/wheel/odom", "/imu/data", "/gt"),
+    }
+    estimates = []
+    for bag, (lidar, odom, imu, truth) in topics.items():
+        out = tmp_path / f"run_{bag.stem}"
+        named = ["--lidar-topic", lidar, "--odom-topic", odom, "--imu-topic", imu, "--truth-topic", truth]
+        r = _cli("localize", bag, "--out", out, *common, *named)
+        assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["frames"] == FRAMES and summary["odometry_source"].startswith(odom)
+        assert summary["options"]["bag"]["lidar_topic"] == lidar
+        assert summary["options"]["bag"]["imu_topic"] == imu
+        assert summary["options"]["bag"]["truth_topic"] == truth
+        metrics = json.loads((out / "metrics.json").read_text())
+        assert metrics["success"] and metrics["location_rmse_m"] < 0.1
+        estimates.append(np.loadtxt(out / "estimate_kitti.txt"))
+    # the same scans, odometry, roll and pitch through two writers: the same estimates
+    assert np.allclose(estimates[0], estimates[1], atol=1e-4, rtol=0)
 
 
 def _cli(*args):
