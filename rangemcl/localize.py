@@ -301,6 +301,8 @@ class LocalizationPipeline:
             sensor_height_m=self.height,
             caster=self.caster,
         )
+        loc.prior_notify = lambda message: print(f"rangemcl: {message}", file=sys.stderr)
+        loc.prior_fallback_dir = self.out_dir  # a map folder that is not writable: beside the results
         if opt.mode == "global":
             loc.spread(opt.particles)
         else:

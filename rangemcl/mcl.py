@@ -720,7 +720,12 @@ def map_place_prior(
             caster.add_mesh(mesh_map.vertices, mesh_map.faces, name="map")
         area = drivable_cells(mesh_map, s.init.drive_radius_m)
         return load_or_build(
-            mesh_map, caster, area.corners, area.cell_m, PriorParams(cell_m=s.init.prior_cell_m)
+            mesh_map,
+            caster,
+            area.corners,
+            area.cell_m,
+            PriorParams(cell_m=s.init.prior_cell_m),
+            replace_damaged=True,  # rendering the prior is what this is for: a damaged one is replaced
         )
     finally:
         close = getattr(mesh_map, "close", None)

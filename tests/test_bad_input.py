@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import importlib
 import io
+import json
 import logging
 import shutil
 import signal
@@ -132,6 +133,14 @@ def flip(at: int):
     return apply
 
 
+def flip_attributes(p: Path) -> None:
+    """A zip file (an ``.npz``) with a byte of its first member's attributes in the central directory
+    inverted: every array still reads (zip's CRC covers the data only), the file is not the one written."""
+    b = bytearray(p.read_bytes())
+    b[b.index(b"PK\x01\x02") + 38] ^= 0xFF  # external file attributes
+    p.write_bytes(bytes(b))
+
+
 def halve(p: Path) -> None:
     p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])
 
@@ -186,6 +195,7 @@ RECORD = "simbed record --scene town_small --route test --out {d}/o --frames 5"
 TRIALS = "simbed trials runtime --out {d}/t --map {d}/map --quick"
 CFG = "{d}/c.yaml"
 
+PRIOR_DAMAGED = ["place_prior.npz", "damaged", "rangemcl place-prior {d}/map"]
 ELEVEN = pose_line(0) + pose_line(1).rsplit(" ", 1)[0] + "\n" + pose_line(2)
 NAN_POSE = pose_line(0) + pose_line(1).replace("1.73", "nan") + pose_line(2)
 
@@ -427,6 +437,11 @@ CASES: list[tuple[str, list[str], dict]] = [
     ("rangemcl map-upgrade {d}/map", ["map.yaml", "missing"], {"map/map.yaml": None}),
     ("rangemcl map-upgrade {d}/map", ["tiles/0_0.npz", "truncated"], {"map/tiles/0_0.npz": cut(10)}),
     ("rangemcl map-info {d}/map", ["tiles.json", "cannot read"], {"map/tiles.json": "{broken"}),
+    # a damaged place prior (cut, a corrupt zip, arrays that are not the stored ones), ground grid (a byte
+    # outside the arrays, which zip's CRC does not cover): the file and the way out
+    ("rangemcl map-info {d}/map", PRIOR_DAMAGED, {"map/place_prior.npz": halve}),
+    ("rangemcl map-info {d}/map", PRIOR_DAMAGED, {"map/place_prior.npz": flip(200)}),
+    ("rangemcl map-info {d}/map", ["ground.npz", "its checksum"], {"map/ground.npz": flip_attributes}),
     ("rangemcl map-info {d}/map", ["ground.npz", "cannot read"], {"map/ground.npz": halve}),
     ("rangemcl map-info {d}/map", ["map.yaml", "malformed YAML"], {"map/map.yaml": append("counts: [\n")}),
     ("rangemcl map-info {d}/map", ["map.yaml", "mapping"], {"map/map.yaml": "- 1\n"}),
@@ -491,6 +506,9 @@ CASES: list[tuple[str, list[str], dict]] = [
     (LOC, ["map.yaml", "missing"], {"map/map.yaml": None}),
     (LOC, ["tiles/0_1.npz", "truncated"], {"map/tiles/0_1.npz": halve}),
     (LOC, ["tiles.json", "not a tile index"], {"map/tiles.json": "[]"}),
+    (LOC, PRIOR_DAMAGED, {"map/place_prior.npz": halve}),
+    (LOC, PRIOR_DAMAGED, {"map/place_prior.npz": flip(200)}),
+    (LOC + " --mode tracking", ["ground.npz", "checksum"], {"map/ground.npz": flip_attributes}),
     # --- rangemcl localize: the config
     (LOC + " --config " + CFG, ["c.yaml", "malformed YAML"], {"c.yaml": "refine: {gate_m: \n"}),
     (LOC + " --config " + CFG, ["c.yaml", "refine.gate_mm", "gate_m"], {"c.yaml": "refine:\n  gate_mm: 1\n"}),
@@ -851,7 +869,7 @@ def _check(d: Path, command: str, words: list[str]) -> None:
     assert code == 2, stderr
     assert len(lines) == 1 and "Traceback" not in stderr, stderr
     for w in words:
-        assert w in lines[0], (w, lines[0])
+        assert w.format(d=d) in lines[0], (w, lines[0])
     assert _tree(d) == before  # nothing created or changed
 
 
@@ -904,6 +922,75 @@ def test_the_good_inputs_are_good(base, tmp_path):
         code, stderr = run_cli(args[0], args[1:])
         assert code == 0 and stderr == "", (command, stderr)
     assert not (d / "o").exists()
+
+
+def test_place_prior_replaces_a_damaged_prior_with_the_same_bytes(base, tmp_path):
+    """The remedy a damaged prior's message names works: ``rangemcl place-prior MAP`` renders it again
+    (it does not stop at the damaged file), and the new file is the old one byte for byte."""
+    d = _case_folder(base, tmp_path, {"map/place_prior.npz": halve})
+    code = "import sys; from rangemcl.cli import main; sys.argv[0] = 'rangemcl'; main()"
+    run = subprocess.run(
+        [sys.executable, "-c", code, "place-prior", str(d / "map")], capture_output=True, text=True
+    )
+    assert run.returncode == 0 and "place prior built (a damaged file replaced)" in run.stdout, run.stderr
+    assert (d / "map/place_prior.npz").read_bytes() == (base / "map/place_prior.npz").read_bytes()
+    assert run_cli("rangemcl", ["map-info", str(d / "map")])[0] in (0, None)
+
+
+def test_a_damaged_drive_file_is_one_line(base, tmp_path):
+    """The mapping drive's file is checked against map.yaml's sha256 as the ground grid is."""
+    from rangemcl.mapping.meshmap import MeshMap
+
+    m = MeshMap.load(base / "map")
+    m.drive_xy = np.array([[-20.0, -10.0], [0.0, -10.0], [20.0, -10.0]])
+    m.save(tmp_path / "map")
+    assert run_cli("rangemcl", ["map-info", str(tmp_path / "map")])[0] in (0, None)
+    flip_attributes(tmp_path / "map/drive.npz")
+    _check(tmp_path, "rangemcl map-info {d}/map", ["drive.npz", "checksum in map.yaml"])
+
+
+def test_a_prior_rendered_during_localize_is_announced(base, tmp_path, monkeypatch):
+    """A map without its place prior: global localization says on stderr that it renders it and where it
+    goes (into the map folder; beside the results when the map folder is not writable), then runs."""
+    import rangemcl.localization.place_prior as place_prior
+
+    d = _case_folder(base, tmp_path, {"map/place_prior.npz": None, "map/report.json": None})
+    args = ["localize", f"{d}/seq", "--map", f"{d}/map", "--particles", "200", "--no-plots", "--frames", "2"]
+    code, err = run_cli("rangemcl", [*args, "--out", f"{d}/o"])
+    assert code in (0, None), err
+    notice = f"rangemcl: rendering the map's place prior (4 cells of 2 m, written to {d}/map/place_prior.npz)"
+    assert notice in err, err
+    assert f"`rangemcl place-prior {d}/map` renders it ahead" in err
+    assert (d / "map/place_prior.npz").read_bytes() == (base / "map/place_prior.npz").read_bytes()
+    # the next run finds it: nothing more is rendered
+    code, err = run_cli("rangemcl", [*args, "--out", f"{d}/o2"])
+    assert code in (0, None) and "rendering" not in err, err
+    # a map folder that cannot be written (root ignores permissions, so the check is replaced)
+    e = _case_folder(base, tmp_path / "ro", {"map/place_prior.npz": None})
+    monkeypatch.setattr(place_prior, "_writable", lambda path: False)
+    args[1], args[3] = f"{e}/seq", f"{e}/map"
+    code, err = run_cli("rangemcl", [*args, "--out", f"{e}/o"])
+    assert code in (0, None) and f"written to {e}/o/place_prior.npz" in err, err
+    assert not (e / "map/place_prior.npz").exists() and (e / "o/place_prior.npz").is_file()
+
+
+def test_the_same_scans_give_the_same_map_bytes(base, tmp_path):
+    """``rangemcl build-map`` twice on the same scans: every file of the two maps is the same, byte for
+    byte, the place prior included (timings live in report.json only)."""
+    maps = []
+    for name in ("a", "b"):
+        args = ["build-map", str(base / "seq"), "--out", str(tmp_path / name), "--workers", "1"]
+        code, err = run_cli("rangemcl", args)
+        assert code in (0, None), err
+        maps.append(tmp_path / name)
+    files = sorted(str(p.relative_to(maps[0])) for p in maps[0].rglob("*") if p.is_file())
+    assert "place_prior.npz" in files and "tiles.json" in files
+    assert files == sorted(str(p.relative_to(maps[1])) for p in maps[1].rglob("*") if p.is_file())
+    files.remove("report.json")
+    for name in files:
+        assert (maps[0] / name).read_bytes() == (maps[1] / name).read_bytes(), name
+    report = json.loads((maps[0] / "report.json").read_text())
+    assert report["place_prior"]["place_prior.npz"]["seconds"] > 0
 
 
 def test_in_process_equals_a_process(base, tmp_path):

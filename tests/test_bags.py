@@ -146,7 +146,7 @@ def _write_with_mcap_ros2(folder_path, out, *, odom_imu: bool = False) -> None:
             }  # fmt: skip
             w.write_message("/velodyne_points", s_pc, msg, log_time=ns, publish_time=ns)
 
-            def odometry(T, frame):
+            def odometry(T, frame, stamp=stamp):
                 q = quat_from_matrix(T[:3, :3])
                 pose = {
                     "position": dict(zip("xyz", T[:3, 3].tolist(), strict=True)),

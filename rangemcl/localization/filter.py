@@ -276,6 +276,10 @@ class MonteCarloLocalizer:
         self.beam_prior: PlacePrior | None = None  # the sensor's own top beam (scans with no high band)
         self.beam_prior_source = ""
         self._beam_checked = False  # the top beam was looked for (once per run)
+        # a prior not stored in the map folder is rendered at the first search: prior_notify(message) is
+        # told so before it starts; prior_fallback_dir holds it when the map folder is not writable
+        self.prior_notify = None
+        self.prior_fallback_dir = None
         self._scan_raw: np.ndarray | None = None  # the scan being weighed, unlevelled (for the beam prior)
         self.particles = np.zeros((0, 3))
         self.log_w = np.zeros(0)
@@ -319,7 +323,13 @@ class MonteCarloLocalizer:
         if self.prior is None:
             area = self.init_cells
             self.prior, self.prior_source = load_or_build(
-                self.map, self.caster, area.corners, area.cell_m, self.prior_params
+                self.map,
+                self.caster,
+                area.corners,
+                area.cell_m,
+                self.prior_params,
+                notify=self.prior_notify,
+                fallback_dir=self.prior_fallback_dir,
             )
             self._count_in_budget("place prior", self.prior.nbytes)
         return self.prior
@@ -351,7 +361,13 @@ class MonteCarloLocalizer:
             area = self.init_cells
             params = beam_params(p, top, self.sensor_height_m)
             self.beam_prior, self.beam_prior_source = load_or_build(
-                self.map, self.caster, area.corners, area.cell_m, params
+                self.map,
+                self.caster,
+                area.corners,
+                area.cell_m,
+                params,
+                notify=self.prior_notify,
+                fallback_dir=self.prior_fallback_dir,
             )
             self._count_in_budget("beam place prior", self.beam_prior.nbytes)
         return self.beam_prior

@@ -230,11 +230,15 @@ class PlacePrior:
         params: the :class:`PriorParams` they were rendered with.
     """
 
-    def __init__(self, xy: np.ndarray, profiles: np.ndarray, params: PriorParams, *, build_s: float = 0.0):
+    def __init__(
+        self, xy: np.ndarray, profiles: np.ndarray, params: PriorParams, *, build_s: float | None = None
+    ):
         self.xy = np.asarray(xy, np.float64).reshape(-1, 2)
         self.profiles = np.asarray(profiles, params.dtype)
         self.params = params
-        self.build_s = float(build_s)
+        # seconds it took to render, for a prior rendered in this process (None: read from a file, whose
+        # bytes hold no timing: the same map gives the same file; rangemcl.mapping.report keeps timings)
+        self.build_s = None if build_s is None else float(build_s)
         if self.profiles.shape != (len(self.xy), params.rows, params.bins) or len(self.xy) == 0:
             raise InputError(f"place prior: {len(self.xy)} cells but profiles of shape {self.profiles.shape}")
         # the encoded value of each quantised range: a profile's spectra are computed from these at match
@@ -393,34 +397,40 @@ class PlacePrior:
     # --- files -------------------------------------------------------------------------------------------
 
     def save(self, path: Path, key: str) -> None:
+        """Write the prior to ``path`` (atomically). The file holds the cells, the profiles and a meta
+        record (version, key, parameters, a sha256 of the arrays): no timing, so the same map and
+        parameters give the same bytes."""
         from rangemcl.atomic import atomic_write, savez_stable
 
-        meta = json.dumps(
-            {"version": PRIOR_VERSION, "key": key, "params": asdict(self.params), "build_s": self.build_s}
-        )
+        xy = self.xy.astype(np.float32)
+        meta = {"version": PRIOR_VERSION, "key": key, "params": asdict(self.params)}
+        meta["sha256"] = _arrays_sha256(xy, self.profiles)
         atomic_write(
             Path(path),
             lambda fh: savez_stable(
-                fh,
-                compressed=True,
-                xy=self.xy.astype(np.float32),
-                profiles=self.profiles,
-                meta=np.array(meta),
+                fh, compressed=True, xy=xy, profiles=self.profiles, meta=np.array(json.dumps(meta))
             ),
         )
 
     @classmethod
     def load(cls, path: Path, key: str | None = None) -> PlacePrior | None:
         """The prior in ``path``; ``None`` when it is missing, of another version or (given ``key``) of
-        another map or parameters (then it is rebuilt); a damaged file is an :class:`InputError`."""
+        another map or parameters (then it is rebuilt); a damaged file (truncated, a corrupt zip, arrays
+        that do not match the sha256 stored with them) is one :class:`InputError` that names the command
+        that renders it again."""
         path = Path(path)
         if not path.is_file():
             return None
         try:
             with np.load(path, allow_pickle=False) as z:
                 meta = json.loads(str(z["meta"]))
+                if not isinstance(meta, dict):
+                    raise ValueError("its meta record is not a JSON object")
                 if meta.get("version") != PRIOR_VERSION or (key is not None and meta.get("key") != key):
                     return None
+                xy, profiles = z["xy"], z["profiles"]
+                if "sha256" in meta and meta["sha256"] != _arrays_sha256(xy, profiles):
+                    raise ValueError("its arrays do not match their sha256")
                 p = meta["params"]
                 params = PriorParams(
                     **{
@@ -429,9 +439,25 @@ class PlacePrior:
                     }
                 )
                 params.check()
-                return cls(z["xy"], z["profiles"], params, build_s=float(meta.get("build_s", 0.0)))
-        except (OSError, ValueError, KeyError, TypeError, InputError) as err:
-            raise InputError(f"{path}: cannot read the place prior ({err}); delete it to rebuild") from None
+                return cls(xy, profiles, params)
+        except Exception as err:  # zip, zlib, npy format and JSON errors all mean a damaged file
+            why = " ".join(str(err).split()) or type(err).__name__
+            remedy = (
+                f"render it again with `rangemcl place-prior {path.parent}`"
+                if path.name == PRIOR_FILE
+                else "delete it: the next global localization with this sensor renders it again"
+            )
+            raise InputError(f"{path}: the place prior is damaged ({why}); {remedy}") from None
+
+
+def _arrays_sha256(xy: np.ndarray, profiles: np.ndarray) -> str:
+    """The sha256 of a prior's stored arrays (their dtype, shape and bytes)."""
+    h = hashlib.sha256()
+    for a in (xy, profiles):
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
 
 
 def prior_key(mesh_map, cells_xy: np.ndarray, params: PriorParams) -> str:
@@ -456,11 +482,24 @@ PARTIAL = "+partial"  # the key's suffix of a prior rendered with some tiles coa
 
 
 def load_or_build(
-    mesh_map, caster, area_corners: np.ndarray, area_cell_m: float, params: PriorParams | None = None
+    mesh_map,
+    caster,
+    area_corners: np.ndarray,
+    area_cell_m: float,
+    params: PriorParams | None = None,
+    *,
+    notify=None,
+    fallback_dir: str | Path | None = None,
+    replace_damaged: bool = False,
 ):
     """The map's place prior: read from the map folder when one matches, else rendered (and written
     there when the folder is writable). Returns ``(prior, how)`` with how in ``loaded | built | built
-    (not saved: ...)``."""
+    (not saved: ...)``.
+
+    ``notify(message)``: told, before a render starts, what is rendered and where it goes (a render takes
+    seconds to minutes and writes into the map folder). ``fallback_dir``: where the prior is read and
+    written when the map folder is not writable (e.g. a run's results folder). ``replace_damaged``: a
+    damaged stored prior is rendered again and replaced (else it is an :class:`InputError`)."""
     params = params or PriorParams()
     params.check()
     xy = grid_cells(area_corners, area_cell_m, params.cell_m)
@@ -468,16 +507,35 @@ def load_or_build(
     budget = hasattr(mesh_map, "update")  # a map seen within a memory budget
     src = getattr(mesh_map, "source_dir", None)
     path = None if src is None else Path(src) / params.file_name
-    if path is not None:
+    spare = None if fallback_dir is None else Path(fallback_dir) / params.file_name
+    damaged = None
+    for place in (p for p in (path, spare) if p is not None):
         # a prior rendered where the budget held some tiles coarse or none is stored under its own key: a
         # run within a budget may take it, a run with the whole map renders its own
         for k in (key, key + PARTIAL) if budget else (key,):
-            prior = PlacePrior.load(path, k)
+            try:
+                prior = PlacePrior.load(place, k)
+            except InputError as err:
+                if not replace_damaged:
+                    raise
+                damaged = err
+                break
             if prior is not None:
                 return prior, "loaded"
+    target = path
+    if path is not None and spare is not None and not _writable(path):
+        target = spare
+    if notify is not None:
+        where = "kept in memory only" if target is None else f"written to {target}"
+        ahead = "" if src is None else f"; `rangemcl place-prior {src}` renders it ahead of a run"
+        what = "place prior" if params.beam_deg is None else f"place prior of a {params.beam_deg:g} deg beam"
+        notify(
+            f"rendering the map's {what} ({len(xy):,} cells of {params.cell_m:g} m, {where}): the "
+            f"first global localization on a map renders it once{ahead}"
+        )
     gz = mesh_map.ground.height_at(xy[:, 0], xy[:, 1])
+    t0 = time.perf_counter()
     if budget:  # rendered tile by tile
-        t0 = time.perf_counter()
         tile = mesh_map.tile_at(xy[:, 0], xy[:, 1])
         profiles = np.empty((len(xy), params.rows, params.bins), params.dtype)
         partial = False
@@ -490,13 +548,55 @@ def load_or_build(
         key += PARTIAL if partial else ""
     else:
         prior = PlacePrior.build(caster, xy, gz, params)
-    how = "built"
-    if path is not None:
+    how = "built" if damaged is None else "built (a damaged file replaced)"
+    if target is not None:
         try:
-            prior.save(path, key)
+            prior.save(target, key)
         except (OSError, InputError) as err:
             how = f"built (not saved: {err})"
+        else:
+            record_build(target, prior)
+            if target != path:
+                how += f" (saved in {target.parent}: the map folder is not writable)"
     return prior, how
+
+
+def _writable(path: Path) -> bool:
+    """Whether ``path`` can be written (replaced, or created in its folder)."""
+    import os
+
+    if path.exists():
+        return os.access(path, os.W_OK) and os.access(path.parent, os.W_OK | os.X_OK)
+    return path.parent.is_dir() and os.access(path.parent, os.W_OK | os.X_OK)
+
+
+REPORT_FILE = "report.json"  # beside the prior: how long each stored prior took to render
+
+
+def record_build(path: Path, prior: PlacePrior) -> None:
+    """Note in ``report.json`` beside the prior file ``path`` how long it took to render (the prior's own
+    bytes hold no timing). A report that cannot be read or written is left as it is: it is informative."""
+    from rangemcl.atomic import atomic_write
+
+    report = Path(path).parent / REPORT_FILE
+    try:
+        doc = json.loads(report.read_text()) if report.is_file() else {}
+        if not isinstance(doc, dict):
+            return
+        entry = {"seconds": prior.build_s, "cells": len(prior.xy)}
+        doc.setdefault("place_prior", {})[Path(path).name] = entry
+        atomic_write(report, json.dumps(doc, indent=2) + "\n")
+    except (OSError, ValueError, AttributeError):
+        return
+
+
+def recorded_build_s(path: Path) -> float | None:
+    """The render time that :func:`record_build` noted for the prior file ``path``, if any."""
+    try:
+        doc = json.loads((Path(path).parent / REPORT_FILE).read_text())
+        return float(doc["place_prior"][Path(path).name]["seconds"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
 
 
 def circular_distance_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:

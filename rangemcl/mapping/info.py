@@ -38,7 +38,7 @@ def map_info(map_dir) -> dict[str, Any]:
     t0 = time.perf_counter()
     store = open_checked_store(map_dir, doc["counts"])
     open_ms = (time.perf_counter() - t0) * 1e3
-    ground, drive = _read_ground_and_drive(map_dir)
+    ground, drive = _read_ground_and_drive(map_dir, doc)
     per_tile = np.array([e.triangles for e in store.entries])
     ground_vertices = ground_faces = 0
     for k in range(len(store.entries)):  # every tile checked, one at a time
@@ -89,7 +89,7 @@ def map_info(map_dir) -> dict[str, Any]:
 
 
 def _prior_line(map_dir: Path) -> str:
-    from rangemcl.localization.place_prior import PARTIAL, PRIOR_FILE, PlacePrior
+    from rangemcl.localization.place_prior import PARTIAL, PRIOR_FILE, PlacePrior, recorded_build_s
 
     path = map_dir / PRIOR_FILE
     prior = PlacePrior.load(path)
@@ -98,7 +98,9 @@ def _prior_line(map_dir: Path) -> str:
     with np.load(path, allow_pickle=False) as z:
         key = str(json.loads(str(z["meta"])).get("key", ""))
     partial = ", rendered with tiles held coarse (a budget)" if key.endswith(PARTIAL) else ""
+    seconds = recorded_build_s(path)
+    took = "" if seconds is None else f", rendered in {seconds:.1f} s"
     return (
-        f"{len(prior.xy)} cells of {prior.params.cell_m:g} m, {path.stat().st_size / 1e6:.1f} MB, "
-        f"rendered in {prior.build_s:.1f} s{partial}"
+        f"{len(prior.xy)} cells of {prior.params.cell_m:g} m, {path.stat().st_size / 1e6:.1f} MB"
+        f"{took}{partial}"
     )

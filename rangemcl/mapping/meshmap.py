@@ -44,6 +44,7 @@ import yaml
 from rangemcl.atomic import atomic_write, savez_stable
 from rangemcl.errors import InputError
 from rangemcl.mapping.ply_v1 import read_ply_binary
+from rangemcl.mapping.store import file_sha256
 from rangemcl.yamlio import parse_yaml, read_text
 
 FORMAT_NAME = "rangemcl-mesh-map"
@@ -378,7 +379,7 @@ class MeshMap:
             return cls._load_v1(map_dir, counts, meta)
         store = open_checked_store(map_dir, counts)
         v, f, g, face_tile = store.read_all()
-        ground, drive = _read_ground_and_drive(map_dir)
+        ground, drive = _read_ground_and_drive(map_dir, doc)
         return cls(
             vertices=v,
             faces=f,
@@ -504,7 +505,9 @@ def open_checked_store(map_dir: Path, counts: dict):
     return store
 
 
-def _read_ground_and_drive(map_dir: Path) -> tuple[GroundGrid, np.ndarray | None]:
+def _read_ground_and_drive(map_dir: Path, doc: dict | None = None) -> tuple[GroundGrid, np.ndarray | None]:
+    """The ground grid and the mapping drive of a map folder, each checked against the sha256 that
+    ``map.yaml`` (``doc``) lists for it (maps written before the checksums were kept list none)."""
     gpath = map_dir / "ground.npz"
     gz = _read_npz(gpath, {"origin_xy": (2,), "cell_m": (), "heights": (-1, -1)})
     try:
@@ -517,6 +520,18 @@ def _read_ground_and_drive(map_dir: Path) -> tuple[GroundGrid, np.ndarray | None
         drive = _read_npz(dpath, {"xy": (-1, 2)})["xy"].astype(np.float64)
         if not np.isfinite(drive).all():
             raise InputError(f"{dpath}: xy holds non-finite values")
+    # readable is not enough: a byte outside the arrays (which zip's CRC does not cover), or the file of
+    # another map
+    sums = (doc or {}).get("sha256") or {}
+    if not isinstance(sums, dict):
+        raise InputError(f"{map_dir / 'map.yaml'}: 'sha256' must map file names to checksums")
+    for name, want in sums.items():
+        path = map_dir / str(name)
+        if path.is_file() and file_sha256(path) != want:
+            raise InputError(
+                f"{path}: does not match its checksum in map.yaml (damaged?); rebuild the map, or copy the "
+                "file again from where the map came from"
+            )
     return ground, drive
 
 
@@ -537,6 +552,7 @@ def write_map_files(
     if drive_xy is not None:
         atomic_write(map_dir / "drive.npz", lambda fh: savez_stable(fh, xy=np.asarray(drive_xy, np.float64)))
         files["drive"] = "drive.npz"
+    sums = {name: file_sha256(map_dir / name) for name in (files["ground"], files.get("drive")) if name}
     counts = {
         "vertices": sum(e.vertices for e in entries),
         "triangles": sum(e.triangles for e in entries),
@@ -545,7 +561,7 @@ def write_map_files(
     }
     b = np.array([e.bounds for e in entries])
     extent = (*b[:, :3].min(axis=0).tolist(), *b[:, 3:].max(axis=0).tolist())
-    text = map_yaml_text(files, counts, tile_size_m, ground.cell_m, extent, meta)
+    text = map_yaml_text(files, counts, tile_size_m, ground.cell_m, extent, meta, sums)
     from rangemcl.pool import kill_point
 
     kill_point("map-files")  # tests: killed with every file but map.yaml written
@@ -561,8 +577,17 @@ def write_map_files(
     return counts
 
 
-def map_yaml_text(files: dict, counts: dict, tile_size_m: float, ground_cell_m: float, extent, meta) -> str:
-    """The text of a map folder's ``map.yaml`` (written last: its presence marks a complete folder)."""
+def map_yaml_text(
+    files: dict,
+    counts: dict,
+    tile_size_m: float,
+    ground_cell_m: float,
+    extent,
+    meta,
+    sha256: dict | None = None,
+) -> str:
+    """The text of a map folder's ``map.yaml`` (written last: its presence marks a complete folder);
+    ``sha256``: the checksums of the ground grid and the drive file (the tiles' are in the index)."""
     doc = {
         "format": FORMAT_NAME,
         "format_version": FORMAT_VERSION,
@@ -571,6 +596,7 @@ def map_yaml_text(files: dict, counts: dict, tile_size_m: float, ground_cell_m: 
         "tile_size_m": float(tile_size_m),
         "ground_cell_m": float(ground_cell_m),
         "extent_m": [float(x) for x in extent],
+        "sha256": dict(sha256 or {}),
         "meta": _plain(meta),
     }
     return yaml.safe_dump(doc, sort_keys=False, allow_unicode=True)

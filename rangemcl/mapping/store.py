@@ -97,7 +97,7 @@ def tile_file(i: int, j: int, *, coarse: bool = False) -> str:
     return f"{COARSE_DIR if coarse else TILE_DIR}/{int(i)}_{int(j)}.npz"
 
 
-def _sha256(path: Path) -> str:
+def file_sha256(path: Path) -> str:
     h = hashlib.sha256()
     with path.open("rb") as fh:
         for block in iter(lambda: fh.read(1 << 20), b""):
@@ -127,7 +127,7 @@ def write_tile(map_dir, ij, vertices, faces, is_ground, *, coarse: bool = False)
         ground_vertices=int(g.sum()),
         bounds=(*(float(x) for x in lo), *(float(x) for x in hi)),
         bytes=path.stat().st_size,
-        sha256=_sha256(path),
+        sha256=file_sha256(path),
     )
 
 
@@ -231,7 +231,7 @@ class TileStore:
             raise InputError(f"{path}: cannot read tile {e.ij}: {err.strerror or err}") from None
         if size != e.bytes:
             raise InputError(f"{path}: tile {e.ij} has {size} bytes, the index says {e.bytes} (truncated?)")
-        if verify and _sha256(path) != e.sha256:
+        if verify and file_sha256(path) != e.sha256:
             raise InputError(f"{path}: tile {e.ij} does not match its checksum in {INDEX_NAME} (damaged?)")
         try:
             with np.load(path, allow_pickle=False) as z:

@@ -127,7 +127,7 @@ class MapView:
         self.format_version = version
         self.meta = doc["meta"]
         self.store = TileStore.open(map_dir)
-        self.ground, self.drive_xy = _read_ground_and_drive(map_dir)
+        self.ground, self.drive_xy = _read_ground_and_drive(map_dir, doc)
         self.tiles = self.store.tiles
         self.tile_size_m = self.store.tile_size_m
         self.tile_origin_xy = self.store.origin_xy
