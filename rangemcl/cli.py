@@ -182,8 +182,10 @@ def sweep(
     seed: int = typer.Option(0, help="Seed of the town layout and of the range noise."),
     device: str = typer.Option("cpu", help="Warp device: cpu or cuda."),
     threads: int = typer.Option(0, help="CPU threads (0 = all cores)."),
+    overwrite: bool = typer.Option(False, help="Replace this sensor's range image and scan in OUT."),
 ) -> None:
-    """Cast one LiDAR sweep in a synthetic town through the Warp core and write what it saw."""
+    """Cast one LiDAR sweep in a synthetic town through the Warp core and write what it saw (OUT keeps
+    one range image and one scan per sensor)."""
     import time
 
     import numpy as np
@@ -197,8 +199,12 @@ def sweep(
 
     _at_least("--seed", seed, 0)
     _at_least("--threads", threads, 0)
+    from rangemcl.outdir import check_output_files, output_files
+
     _output_dir("--out", out)
     spec = load_spec(sensor)
+    files = [out / f"range_{spec.name}.png", out / f"scan_{spec.name}.bin"]
+    check_output_files(files, overwrite=overwrite, what=f"the {spec.name} sweep")
     resolve_device(device)
     rng = np.random.default_rng(seed)
     town = meshgen.town(seed=seed)
@@ -223,9 +229,9 @@ def sweep(
     noisy = np.where(valid, noisy, 0.0).astype(np.float32)
     points = geometry.back_project(noisy)[valid]  # (N, 3) sensor frame
 
-    out.mkdir(parents=True, exist_ok=True)
-    png = save_range_image_png(out / f"range_{spec.name}.png", noisy, spec.max_range_m)
-    scan = write_scan_bin(out / f"scan_{spec.name}.bin", points)
+    with output_files(files, overwrite=overwrite, what=f"the {spec.name} sweep"):
+        png = save_range_image_png(files[0], noisy, spec.max_range_m)
+        scan = write_scan_bin(files[1], points)
     n_rays = ranges.size
     typer.echo(
         f"{spec.name}: {spec.beams} x {spec.columns} rays in a town of {len(faces):,} triangles "

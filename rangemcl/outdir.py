@@ -1,4 +1,6 @@
-"""The output policy of every command that writes a folder (issue 18).
+"""The output policy of every command: what it does with an output that exists.
+
+Commands that write a folder (:func:`check_output`, :func:`output_folder`):
 
 * A folder that holds results is refused in one line naming ``--overwrite``; a folder that holds files
   which are not this command's results is refused even with ``--overwrite`` (nothing of the user's is
@@ -10,6 +12,15 @@
 * A run that fails or is refused leaves nothing it created: the folder (and any parent it had to make)
   is removed again, unless the run has kept results by then (``keep_if``: e.g. the frames a localization
   wrote before it was interrupted).
+
+Commands that write files (a town, a PNG, a mesh, a sweep's scan: :func:`check_output_files`,
+:func:`output_files`), the same rules:
+
+* A file that exists is refused in one line naming ``--overwrite``; with it, the file is replaced when the
+  new one is written whole (the writers write atomically), so a failed run leaves the earlier file.
+* A path that is a folder, or lies under a file or in a folder that cannot be written, is refused.
+* Folders missing above the files are made (as for output folders), and removed again with the files this
+  run made when the run fails.
 """
 
 from __future__ import annotations
@@ -111,3 +122,63 @@ def has_frames(path: Path) -> bool:
             return sum(1 for _ in zip(range(2), fh, strict=False)) >= 2
     except OSError:
         return False
+
+
+def check_output_files(
+    paths: Iterable[str | os.PathLike], *, overwrite: bool, what: str, option: str = "--out"
+) -> list[Path]:
+    """Refuse to write the files ``paths`` (what one run of a command writes; ``what`` names them in the
+    message, e.g. "the town") when one of them exists, unless ``overwrite``; refuse a path that is a
+    folder, lies under a file, or whose folder cannot be written, whatever ``overwrite``. An
+    :class:`InputError` names the path and the way out. Changes nothing."""
+    out = [Path(p) for p in paths]
+    for p in out:
+        if p.is_dir():
+            raise InputError(f"{option} {p}: is a folder (give a file name)")
+        probe = p.parent
+        while not probe.exists() and probe != probe.parent:
+            probe = probe.parent
+        if not probe.is_dir():
+            raise InputError(f"{option} {p}: cannot be written ({probe} is a file)")
+        if not os.access(probe, os.W_OK | os.X_OK) or (p.exists() and not os.access(p, os.W_OK)):
+            raise InputError(f"{option} {p}: cannot write here ({probe} is not a writable folder)")
+    existing = [p for p in out if p.exists()]
+    if existing and not overwrite:
+        raise InputError(f"{existing[0]}: exists (give --overwrite to replace {what})")
+    return out
+
+
+@contextmanager
+def output_files(
+    paths: Iterable[str | os.PathLike],
+    *,
+    overwrite: bool,
+    what: str,
+    option: str = "--out",
+    also: Iterable[str | os.PathLike] = (),
+) -> Iterator[list[Path]]:
+    """Claim the files ``paths`` under the policy (:func:`check_output_files`) for the ``with`` block:
+    the folders missing above them are made. If the block raises (Ctrl-C included), the files it created
+    (``paths`` and ``also``: files it may write beside them that are never refused, e.g. a shared include)
+    and the folders made for them are removed again; files that existed stay as they are (their writers
+    replace them atomically). The exception propagates."""
+    out = check_output_files(paths, overwrite=overwrite, what=what, option=option)
+    extra = [Path(p) for p in also]
+    existed = {p for p in [*out, *extra] if p.exists()}
+    made: list[Path] = []  # the outermost folders this run creates
+    for p in out:
+        probe, top = p.parent, None
+        while not probe.exists():
+            top, probe = probe, probe.parent
+        if top is not None:
+            made.append(top)
+            p.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        yield out
+    except BaseException:
+        for p in [*out, *extra]:
+            if p not in existed and (p.is_file() or p.is_symlink()):
+                p.unlink(missing_ok=True)
+        for folder in made:
+            shutil.rmtree(folder, ignore_errors=True)
+        raise

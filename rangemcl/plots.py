@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from rangemcl.atomic import atomic_write
+
 
 def save_range_image_png(
     path, ranges: np.ndarray, max_range_m: float | None = None, row_scale: int = 4
@@ -28,7 +30,7 @@ def save_range_image_png(
     image = np.repeat(colours, max(1, int(row_scale)), axis=0)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    plt.imsave(path, image)
+    atomic_write(path, lambda fh: plt.imsave(fh, image, format="png"))
     return path
 
 

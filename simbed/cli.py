@@ -29,11 +29,12 @@ def make_town(
     seed: int = typer.Option(0, help="Seed of the layout."),
     size: float = typer.Option(400.0, help="Side of the square town, metres."),
     variants: int = typer.Option(2, help="Parked-car variants (one per mapping/test run)."),
+    overwrite: bool = typer.Option(False, help="Replace a town that OUT (and its files beside it) holds."),
 ) -> None:
     """Generate a town: roads with loops and junctions, terrain, buildings, poles, trees, parked cars."""
     from simbed.towngen import generate_town
 
-    info = generate_town(seed, size, out, n_parked_variants=variants)
+    info = generate_town(seed, size, out, n_parked_variants=variants, overwrite=overwrite)
     typer.echo(
         f"wrote {out} and {out.with_suffix('.yaml')}: {len(info.nodes)} junctions, {len(info.edges)} roads, "
         f"{info.total_length_m:.0f} m of road, {info.parked_variants} parked-car variants"
@@ -170,23 +171,29 @@ def export_mesh(
         "for `rangemcl import-mesh --drive`.",
     ),
     route: str = typer.Option("mapping", help="With --route-out: the route (mapping: every road)."),
+    overwrite: bool = typer.Option(False, help="Replace the PLY file (and the route file) that exist."),
 ) -> None:
     """Write the scene's true static geometry (the ground truth of map quality) as PLY."""
+    from rangemcl.outdir import check_output_files, output_files
     from simbed.geometry import write_ply
     from simbed.world import World
 
+    files = [out] if route_out is None else [out, route_out]
+    check_output_files(files, overwrite=overwrite, what="the exported mesh")  # before the scene is read
     world = World(scene, variant=variant)
     if route_out is not None:
         from simbed.record import scene_route
 
         r = scene_route(world, route)  # checked before anything is written
     v, f = world.static_triangles
-    write_ply(out, v, f)
+    with output_files(files, overwrite=overwrite, what="the exported mesh"):
+        write_ply(out, v, f)
+        if route_out is not None:
+            from rangemcl.atomic import atomic_write
+
+            atomic_write(route_out, "".join(f"{x:.3f} {y:.3f}\n" for x, y in r.points))
     typer.echo(f"wrote {out}: {len(f):,} triangles, {len(v):,} vertices")
     if route_out is not None:
-        from rangemcl.atomic import atomic_write
-
-        atomic_write(route_out, "".join(f"{x:.3f} {y:.3f}\n" for x, y in r.points))
         typer.echo(f"wrote {route_out}: route {route}, {len(r.points):,} points, {r.length_m / 1000:.1f} km")
 
 
@@ -354,23 +361,18 @@ def render(
     camera: str = typer.Option(None, help="A camera of the model (default: behind the car)."),
     scan: Path = typer.Option(None, help="Instead: a sequence folder whose frame to draw as a range image."),
     frame: int = typer.Option(0, help="With --scan: the frame."),
+    overwrite: bool = typer.Option(False, help="Replace the PNG file that exists."),
 ) -> None:
     """Write a PNG of the scene with the car and actors, or (--scan) of a recorded scan's range image."""
     import numpy as np
 
     from rangemcl.errors import InputError
+    from rangemcl.outdir import check_output_files, output_files
 
     for option, value in (("--actors", actors), ("--variant", variant), ("--seed", seed)):
         if value < 0:
             raise InputError(f"{option} must be >= 0, got {value}")
-    probe = out.parent
-    while not probe.exists() and probe != probe.parent:
-        probe = probe.parent
-    if out.is_dir() or not probe.is_dir():
-        why = (
-            "is a folder (give a PNG file name)" if out.is_dir() else f"cannot be written ({probe} is a file)"
-        )
-        raise InputError(f"--out {out}: {why}")
+    check_output_files([out], overwrite=overwrite, what="the picture")
     if scan is not None:
         from rangemcl.dataset import load_sequence
         from rangemcl.plots import save_range_image_png
@@ -392,7 +394,8 @@ def render(
         else:  # a foreign sequence: paper Eq. 1 with KITTI's HDL-64 field of view
             image = RangeImageGeometry.for_fov(64, 900, 3.0, -25.0).project(points)
             top = None
-        save_range_image_png(out, image.ranges, top)
+        with output_files([out], overwrite=overwrite, what="the picture"):
+            save_range_image_png(out, image.ranges, top)
         typer.echo(f"wrote {out}: frame {frame} of {scan}, {int(np.count_nonzero(image.ranges))} returns")
         return
     from simbed.render import render_png
@@ -403,7 +406,8 @@ def render(
         x, y, yaw = world.town.spawn
         world.car.place(world.model, world.data, x, y, float(world.ground_height(x, y)) + 0.02, yaw)
     world.step(int(0.5 / world.model.opt.timestep))  # let it settle, actors move off
-    render_png(world, out, camera=camera)
+    with output_files([out], overwrite=overwrite, what="the picture"):
+        render_png(world, out, camera=camera)
     typer.echo(f"wrote {out}")
 
 

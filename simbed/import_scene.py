@@ -23,6 +23,7 @@ import numpy as np
 
 from rangemcl.atomic import atomic_write
 from rangemcl.errors import InputError
+from rangemcl.outdir import check_output_files, output_files
 from simbed.world import COLLISION_ONLY_GROUP
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
@@ -165,80 +166,81 @@ def import_scene(
     existing = [p for p in (out, pieces_dir, ground_file) if p.exists()]
     if existing and not overwrite:
         raise InputError(f"{existing[0]}: exists (give --overwrite to replace the imported scene)")
-    if not out.parent.is_dir():
-        raise InputError(f"{out}: cannot write here ({out.parent} is not a folder)")
+    check_output_files([out], overwrite=True, what="the scene")  # a folder, under a file, not writable
     v, f = load_world_mesh(world_file, scale=scale, up=up)
     z, xs, ys, missing = ground_grid(v, f, ground_cell_m)
     parts = split_pieces(v, f, max_piece_faces)
 
-    tmp_dir = out.with_name(f".{out.stem}_meshes.tmp")
-    shutil.rmtree(tmp_dir, ignore_errors=True)
-    tmp_dir.mkdir()
-    names = []
-    try:
-        for k, idx in enumerate(parts):
-            used, local = np.unique(f[idx], return_inverse=True)
-            name = f"piece_{k:03d}.stl"
-            (tmp_dir / name).write_bytes(_binary_stl(v[used], local.reshape(-1, 3)))
-            names.append(name)
-        z_min, z_max = float(z.min()), float(z.max())
-        z_range = max(z_max - z_min, 1e-3)
-        data = ((z - z_min) / z_range).astype("<f4")
-        ground_bytes = np.array(data.shape, "<i4").tobytes() + data.tobytes()
-        if pieces_dir.exists():
-            shutil.rmtree(pieces_dir)
-        tmp_dir.rename(pieces_dir)
-    except BaseException:
+    with output_files([out], overwrite=True, what="the scene"):  # folders missing above it are made
+        tmp_dir = out.with_name(f".{out.stem}_meshes.tmp")
         shutil.rmtree(tmp_dir, ignore_errors=True)
-        raise
-    atomic_write(ground_file, ground_bytes)
-    cx, cy = (xs[0] + xs[-1]) / 2, (ys[0] + ys[-1]) / 2
-    hx, hy = max((xs[-1] - xs[0]) / 2, 1e-3), max((ys[-1] - ys[0]) / 2, 1e-3)
-    lo, hi = v.min(axis=0), v.max(axis=0)
-    extent = float(max(hi - lo)) / 2
-    lines = [
-        f'<mujoco model="{out.stem}">',
-        f"  <!-- made by simbed import-scene from {Path(world_file).name} (scale {scale:g}, up {up});",
-        f"       the meshes are what the LiDAR sees, the height field (group {COLLISION_ONLY_GROUP},",
-        "       invisible) what the car drives on -->",
-        '  <option timestep="0.002"/>',
-        f'  <statistic center="{cx:.3f} {cy:.3f} {(lo[2] + hi[2]) / 2:.3f}" extent="{extent:.3f}"/>',
-        "  <visual>",
-        '    <global offwidth="1280" offheight="960"/>',
-        '    <headlight ambient="0.35 0.35 0.35" diffuse="0.55 0.55 0.55" specular="0.1 0.1 0.1"/>',
-        f'    <map znear="0.0005" zfar="{max(8.0, 4 * extent / 100):.1f}" haze="0.2"/>',
-        "  </visual>",
-        "  <asset>",
-        f'    <hfield name="simbed_ground" file="{ground_file.name}"',
-        f'            size="{hx:.4f} {hy:.4f} {z_range:.6f} 1"/>',
-    ]
-    lines += [
-        f'    <mesh name="world_{k:03d}" file="{pieces_dir.name}/{n}" inertia="shell"/>'
-        for k, n in enumerate(names)
-    ]
-    lines += [
-        "  </asset>",
-        "  <worldbody>",
-        '    <light name="sun" directional="true" pos="0 0 200" dir="-0.3 -0.4 -1" diffuse="0.5 0.5 0.5"/>',
-        '    <geom name="simbed_ground" type="hfield" hfield="simbed_ground"',
-        f'          pos="{cx:.4f} {cy:.4f} {z_min:.6f}"',
-        f'          group="{COLLISION_ONLY_GROUP}" rgba="0.5 0.5 0.5 0" contype="1" conaffinity="0"/>',
-    ]
-    lines += [
-        f'    <geom name="world_{k:03d}" type="mesh" mesh="world_{k:03d}" contype="0" conaffinity="0" '
-        'rgba="0.62 0.62 0.6 1"/>'
-        for k in range(len(names))
-    ]
-    lines += ["  </worldbody>", "</mujoco>", ""]
-    atomic_write(out, "\n".join(lines))
-    return ImportReport(
-        out=out,
-        triangles=len(f),
-        vertices=len(np.unique(f)),
-        pieces=len(names),
-        ground_shape=z.shape,
-        ground_cell_m=float(xs[1] - xs[0]) if len(xs) > 1 else ground_cell_m,
-        ground_cells_without_ground=missing,
-        extent=(*map(float, lo), *map(float, hi)),
-        seconds=time.perf_counter() - clock,
-    )
+        tmp_dir.mkdir()
+        names = []
+        try:
+            for k, idx in enumerate(parts):
+                used, local = np.unique(f[idx], return_inverse=True)
+                name = f"piece_{k:03d}.stl"
+                (tmp_dir / name).write_bytes(_binary_stl(v[used], local.reshape(-1, 3)))
+                names.append(name)
+            z_min, z_max = float(z.min()), float(z.max())
+            z_range = max(z_max - z_min, 1e-3)
+            data = ((z - z_min) / z_range).astype("<f4")
+            ground_bytes = np.array(data.shape, "<i4").tobytes() + data.tobytes()
+            if pieces_dir.exists():
+                shutil.rmtree(pieces_dir)
+            tmp_dir.rename(pieces_dir)
+        except BaseException:
+            shutil.rmtree(tmp_dir, ignore_errors=True)
+            raise
+        atomic_write(ground_file, ground_bytes)
+        cx, cy = (xs[0] + xs[-1]) / 2, (ys[0] + ys[-1]) / 2
+        hx, hy = max((xs[-1] - xs[0]) / 2, 1e-3), max((ys[-1] - ys[0]) / 2, 1e-3)
+        lo, hi = v.min(axis=0), v.max(axis=0)
+        extent = float(max(hi - lo)) / 2
+        lines = [
+            f'<mujoco model="{out.stem}">',
+            f"  <!-- made by simbed import-scene from {Path(world_file).name} (scale {scale:g}, up {up});",
+            f"       the meshes are what the LiDAR sees, the height field (group {COLLISION_ONLY_GROUP},",
+            "       invisible) what the car drives on -->",
+            '  <option timestep="0.002"/>',
+            f'  <statistic center="{cx:.3f} {cy:.3f} {(lo[2] + hi[2]) / 2:.3f}" extent="{extent:.3f}"/>',
+            "  <visual>",
+            '    <global offwidth="1280" offheight="960"/>',
+            '    <headlight ambient="0.35 0.35 0.35" diffuse="0.55 0.55 0.55" specular="0.1 0.1 0.1"/>',
+            f'    <map znear="0.0005" zfar="{max(8.0, 4 * extent / 100):.1f}" haze="0.2"/>',
+            "  </visual>",
+            "  <asset>",
+            f'    <hfield name="simbed_ground" file="{ground_file.name}"',
+            f'            size="{hx:.4f} {hy:.4f} {z_range:.6f} 1"/>',
+        ]
+        lines += [
+            f'    <mesh name="world_{k:03d}" file="{pieces_dir.name}/{n}" inertia="shell"/>'
+            for k, n in enumerate(names)
+        ]
+        lines += [
+            "  </asset>",
+            "  <worldbody>",
+            '    <light name="sun" directional="true" pos="0 0 200" dir="-0.3 -0.4 -1" '
+            'diffuse="0.5 0.5 0.5"/>',
+            '    <geom name="simbed_ground" type="hfield" hfield="simbed_ground"',
+            f'          pos="{cx:.4f} {cy:.4f} {z_min:.6f}"',
+            f'          group="{COLLISION_ONLY_GROUP}" rgba="0.5 0.5 0.5 0" contype="1" conaffinity="0"/>',
+        ]
+        lines += [
+            f'    <geom name="world_{k:03d}" type="mesh" mesh="world_{k:03d}" contype="0" conaffinity="0" '
+            'rgba="0.62 0.62 0.6 1"/>'
+            for k in range(len(names))
+        ]
+        lines += ["  </worldbody>", "</mujoco>", ""]
+        atomic_write(out, "\n".join(lines))
+        return ImportReport(
+            out=out,
+            triangles=len(f),
+            vertices=len(np.unique(f)),
+            pieces=len(names),
+            ground_shape=z.shape,
+            ground_cell_m=float(xs[1] - xs[0]) if len(xs) > 1 else ground_cell_m,
+            ground_cells_without_ground=missing,
+            extent=(*map(float, lo), *map(float, hi)),
+            seconds=time.perf_counter() - clock,
+        )

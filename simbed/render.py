@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rangemcl.atomic import atomic_write
 from rangemcl.errors import InputError
 
 
@@ -19,7 +20,7 @@ def render_png(
     image = render_rgb(world, camera=camera, width=width, height=height)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(image).save(out)
+    atomic_write(out, lambda fh: Image.fromarray(image).save(fh, format="PNG"))
     return out
 
 

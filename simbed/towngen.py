@@ -51,6 +51,7 @@ import yaml
 from PIL import Image
 
 from rangemcl.errors import InputError
+from rangemcl.outdir import check_output_files
 from rangemcl.se2 import wrap_angle
 
 CAR_XML = Path(__file__).resolve().parents[1] / "scenes" / "car.xml"
@@ -1321,6 +1322,7 @@ def generate_town(
     n_parked_variants: int = 2,
     name: str | None = None,
     style: TownStyle = DEFAULT_STYLE,
+    overwrite: bool = True,
 ) -> TownInfo:
     """Generate a town: write ``out_xml``, ``<stem>_terrain.bin``, ``<stem>_ground.img`` and ``<stem>.yaml``.
 
@@ -1334,6 +1336,8 @@ def generate_town(
         name: the town's name (default: ``out_xml``'s stem).
         style: the generator's sizes, offsets, spacings and random ranges (:class:`TownStyle`); the XML's
             header comment names the fields that differ from the default.
+        overwrite: replace a town's files that exist; ``False`` refuses them before any work, naming
+            ``--overwrite`` (``simbed make-town``'s policy, :func:`rangemcl.outdir.check_output_files`).
 
     Returns:
         The :class:`TownInfo` that the sidecar holds.
@@ -1354,12 +1358,7 @@ def generate_town(
         raise InputError("town name must not be empty")
     if out_xml.suffix.lower() != ".xml":
         raise InputError(f"{out_xml}: a town is an MJCF file, give a name ending in .xml")
-    probe = out_xml.parent
-    while not probe.exists() and probe != probe.parent:
-        probe = probe.parent
-    if out_xml.is_dir() or not probe.is_dir():
-        why = "is a folder" if out_xml.is_dir() else f"cannot be written ({probe} is a file)"
-        raise InputError(f"{out_xml}: {why}")
+    check_output_files(town_files(out_xml), overwrite=overwrite, what="the town")
     rng = np.random.default_rng(seed)
 
     # roads and terrain
@@ -1455,6 +1454,14 @@ def generate_town(
     if car_copy.resolve() != CAR_XML.resolve():
         shutil.copyfile(CAR_XML, car_copy)
     return info
+
+
+def town_files(out_xml: Path | str) -> list[Path]:
+    """The files :func:`generate_town` writes for ``out_xml`` (beside them it copies ``car.xml``)."""
+    out_xml = Path(out_xml)
+    stem = out_xml.stem
+    return [out_xml, out_xml.with_name(f"{stem}_terrain.bin"), out_xml.with_name(f"{stem}_ground.img"),
+            out_xml.with_suffix(".yaml")]  # fmt: skip
 
 
 def _fail(path: Path, problem: str) -> InputError:

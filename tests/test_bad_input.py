@@ -248,6 +248,16 @@ CASES: list[tuple[str, list[str], dict]] = [
     ("rangemcl sweep --out {d}/o --device nonsense", ["device", "nonsense"], {}),
     ("rangemcl sweep --out {d}/o --seed -1", ["--seed", "-1"], {}),
     ("rangemcl sweep --out {d}/a_file", ["a_file", "not a folder"], {}),
+    (
+        "rangemcl sweep --out {d}/o",
+        ["range_os1-64.png", "exists", "--overwrite"],
+        {"o/range_os1-64.png": b"x"},
+    ),
+    (
+        "rangemcl sweep --sensor vlp-16 --out {d}/o",
+        ["scan_vlp-16.bin", "exists", "--overwrite"],
+        {"o/scan_vlp-16.bin": b"x"},
+    ),
     # --- rangemcl build-map: the sequence
     ("rangemcl build-map {d}/nope --out {d}/o", ["nope", "no such sequence folder"], {}),
     ("rangemcl build-map {d}/a_file --out {d}/o", ["a_file", "not a folder"], {}),
@@ -625,6 +635,16 @@ CASES: list[tuple[str, list[str], dict]] = [
     ("simbed make-town --out {d}/seq --size 120", ["seq", ".xml"], {}),
     ("simbed make-town --out {d}/t.xml --size 120", ["t.xml", "is a folder"], {"t.xml": DIR}),
     ("simbed make-town --out {d}/a_file/t.xml --size 120", ["a_file", "is a file"], {}),
+    (
+        "simbed make-town --out {d}/t.xml --size 120",
+        ["t.xml", "exists", "--overwrite"],
+        {"t.xml": "<mujoco/>\n"},
+    ),
+    (
+        "simbed make-town --out {d}/t.xml --size 120",
+        ["t.yaml", "exists", "--overwrite"],
+        {"t.yaml": "name: t\n"},
+    ),
     # --- simbed record
     ("simbed record --scene town_small --route test --out {d}/o --actors -1", ["actors", "-1"], {}),
     ("simbed record --scene town_small --route test --out {d}/o --frames 0", ["frames"], {}),
@@ -722,7 +742,7 @@ CASES: list[tuple[str, list[str], dict]] = [
     ("simbed import-scene {d}/ground.ply --out {d}/s.xml --max-piece-faces 10", ["--max-piece-faces"], {}),
     ("simbed import-scene {d}/ground.ply --out {d}/a_file", ["a_file", ".xml"], {}),
     ("simbed import-scene {d}/ground.ply --out {d}/scene.xml", ["scene.xml", "--overwrite"], {}),
-    ("simbed import-scene {d}/ground.ply --out {d}/nodir/s.xml", ["nodir", "cannot write here"], {}),
+    ("simbed import-scene {d}/ground.ply --out {d}/a_file/s.xml", ["a_file", "is a file"], {}),
     # --- simbed export-mesh
     ("simbed export-mesh --scene nonsense --out {d}/m.ply", ["nonsense.xml", "no such scene file"], {}),
     (
@@ -737,8 +757,19 @@ CASES: list[tuple[str, list[str], dict]] = [
         {},
     ),
     ("simbed export-mesh --scene town_small --variant -1 --out {d}/m.ply", ["variant", "-1"], {}),
-    ("simbed export-mesh --scene {d}/scene.xml --out {d}/nodir/m.ply", ["nodir"], {}),
-    ("simbed export-mesh --scene {d}/scene.xml --out {d}/seq", ["seq"], {}),
+    ("simbed export-mesh --scene {d}/scene.xml --out {d}/a_file/m.ply", ["a_file", "is a file"], {}),
+    ("simbed export-mesh --scene {d}/scene.xml --out {d}/seq", ["seq", "is a folder"], {}),
+    # a file of an earlier run is not replaced without --overwrite (every command's policy)
+    (
+        "simbed export-mesh --scene {d}/scene.xml --out {d}/m.ply",
+        ["m.ply", "--overwrite"],
+        {"m.ply": "ply\n"},
+    ),
+    (
+        "simbed export-mesh --scene {d}/scene.xml --out {d}/m.ply --route-out {d}/route.txt",
+        ["route.txt", "exists", "--overwrite"],
+        {},
+    ),
     # --- simbed demo
     ("simbed demo --out {d}/o --test-frames 0", ["--test-frames", "0"], {}),
     ("simbed demo --out {d}/o --particles 0", ["--particles", "0"], {}),
@@ -802,6 +833,8 @@ CASES: list[tuple[str, list[str], dict]] = [
     ),
     ("simbed render --scan {d}/seq --out {d}/seq", ["seq", "is a folder"], {}),
     ("simbed render --scene town_small --out {d}/a_file/o.png", ["a_file", "is a file"], {}),
+    ("simbed render --scene town_small --out {d}/o.png", ["o.png", "exists", "--overwrite"], {"o.png": b"x"}),
+    ("simbed render --scan {d}/seq --out {d}/o.png", ["o.png", "exists", "--overwrite"], {"o.png": b"x"}),
 ]
 
 
@@ -991,6 +1024,45 @@ def test_the_same_scans_give_the_same_map_bytes(base, tmp_path):
         assert (maps[0] / name).read_bytes() == (maps[1] / name).read_bytes(), name
     report = json.loads((maps[0] / "report.json").read_text())
     assert report["place_prior"]["place_prior.npz"]["seconds"] > 0
+
+
+def test_file_outputs_are_replaced_only_with_overwrite_and_their_folders_made(base, tmp_path):
+    """The commands that write files follow the folders' policy: a second run with other options is
+    refused and the first result stays; with --overwrite it is replaced; missing folders above the files
+    are made (``import-scene --out new/folder/scene.xml`` too)."""
+    d = _case_folder(base, tmp_path, {})
+
+    def ok(command: str) -> None:
+        args = command.format(d=d).split()
+        code, err = run_cli(args[0], args[1:])
+        assert code in (0, None) and err == "", (command, err)
+
+    ok("simbed make-town --out {d}/new/town/t.xml --size 120 --seed 1")
+    first = (d / "new/town/t.xml").read_bytes()
+    _check(d, "simbed make-town --out {d}/new/town/t.xml --size 120 --seed 2", ["t.xml", "--overwrite"])
+    assert (d / "new/town/t.xml").read_bytes() == first
+    ok("simbed make-town --out {d}/new/town/t.xml --size 120 --seed 2 --overwrite")
+    assert (d / "new/town/t.xml").read_bytes() != first
+
+    ok("rangemcl sweep --sensor vlp-16 --out {d}/sweep --seed 1")
+    scan = (d / "sweep/scan_vlp-16.bin").read_bytes()
+    _check(d, "rangemcl sweep --sensor vlp-16 --out {d}/sweep --seed 2", ["range_vlp-16.png", "--overwrite"])
+    ok("rangemcl sweep --sensor mq-8 --out {d}/sweep")  # another sensor's files beside it
+    ok("rangemcl sweep --sensor vlp-16 --out {d}/sweep --seed 2 --overwrite")
+    assert (d / "sweep/scan_vlp-16.bin").read_bytes() != scan and (d / "sweep/scan_mq-8.bin").is_file()
+
+    ok("simbed export-mesh --scene {d}/scene.xml --out {d}/made/here/m.ply")
+    _check(d, "simbed export-mesh --scene {d}/scene.xml --out {d}/made/here/m.ply", ["m.ply", "--overwrite"])
+    ok("simbed export-mesh --scene {d}/scene.xml --out {d}/made/here/m.ply --overwrite")
+
+    ok("simbed render --scan {d}/seq --out {d}/pictures/scan.png")
+    _check(
+        d, "simbed render --scan {d}/seq --frame 1 --out {d}/pictures/scan.png", ["scan.png", "--overwrite"]
+    )
+    ok("simbed render --scan {d}/seq --frame 1 --out {d}/pictures/scan.png --overwrite")
+
+    ok("simbed import-scene {d}/ground.ply --out {d}/new_folder/deeper/scene.xml")
+    assert (d / "new_folder/deeper/scene_ground.bin").is_file()
 
 
 def test_in_process_equals_a_process(base, tmp_path):

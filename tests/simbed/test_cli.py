@@ -143,7 +143,10 @@ def test_render_scene_and_scan(tmp_path):
     r = simbed("render", "--scan", str(seq), "--out", str(scan_png))
     assert r.returncode == 0, r.stderr
     assert np.asarray(Image.open(scan_png)).shape[:2] == (16 * 4, 1808)
-    one_line_error(simbed("render", "--scan", str(seq), "--frame", "5", "--out", str(scan_png)), "frame 5")
+    again = simbed("render", "--scan", str(seq), "--frame", "1", "--out", str(scan_png))
+    one_line_error(again, "exists", "--overwrite")
+    other = tmp_path / "other.png"
+    one_line_error(simbed("render", "--scan", str(seq), "--frame", "5", "--out", str(other)), "frame 5")
 
 
 def test_make_town_writes_a_loadable_town(tmp_path):
