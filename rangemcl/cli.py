@@ -737,12 +737,15 @@ def localize(
         typer.echo(f"interrupted: the frames localized so far are in {out}", err=True)
         raise typer.Exit(130) from None
     conv = s["converged_frame"]
+    scanned = s.get("frames_localized_from_scans")
     typer.echo(
-        f"wrote {out}: {s['frames']} frames, "
+        f"wrote {out}: {s['frames']} frames"
+        + (f" ({scanned} localized from scans), " if scanned is not None else ", ")
         + (f"converged at frame {conv}" if conv is not None else "never converged")
         + f", {s['recoveries']} recoveries, {s['skipped_scans']} scans without a valid point and "
         f"{s['unreadable_scans']} unreadable scans skipped, "
-        f"{s['seconds_total']:.1f} s"
+        + (f"{s['nan_points_dropped']} NaN points dropped, " if s.get("nan_points_dropped") else "")
+        + f"{s['seconds_total']:.1f} s"
     )
     if s["odometry_source"] != "odometry.txt":
         typer.echo(f"  odometry from {s['odometry_source']}")
@@ -761,11 +764,18 @@ def _metrics_line(m: dict) -> str:
             f"(not caught within {m.get('caught_within_frames', 10)} frames: "
             f"{m.get('wrong_convergences_uncaught', 0)}), false alarms {m.get('false_alarms_count', 0)}"
         )
+    scans = ""
+    if m.get("frames_localized_from_scans") is not None:
+        n = m["frames_localized_from_scans"] + m.get("frames_without_scan", 0)
+        scans = f", {m['frames_localized_from_scans']} of {n} frames localized from scans"
+    reason = m.get("failure_reason")
     if m.get("location_rmse_m") is None:
-        return "  metrics: not converged (failure)" + events
+        why = f": {reason}" if reason and reason != "never converged" else ""
+        return f"  metrics: not converged (failure{why})" + scans + events
+    verdict = "success" if m["success"] else "FAILURE" + (f" ({reason})" if reason else "")
     return (
-        f"  metrics: {'success' if m['success'] else 'FAILURE'}, location RMSE {m['location_rmse_m']:.3f} m, "
-        f"yaw RMSE {m['yaw_rmse_deg']:.2f} deg, converged at frame {m['converged_frame']}" + events
+        f"  metrics: {verdict}, location RMSE {m['location_rmse_m']:.3f} m, "
+        f"yaw RMSE {m['yaw_rmse_deg']:.2f} deg, converged at frame {m['converged_frame']}" + scans + events
     )
 
 

@@ -1,7 +1,16 @@
 """The paper's localization metrics for an estimated trajectory against ground truth.
 
 * **Success**: the location error is below 5 m at every 100th frame after convergence (the convergence
-  frame itself, then every 100th frame after it), and the filter converged at all.
+  frame itself, then every 100th frame after it), and the filter converged at all. Where it is known at
+  which frames the filter weighed a scan (its updates: ``rangemcl localize`` and ``evaluate`` of its
+  results), success also needs at least one of them from the convergence frame on
+  (``success_requires_a_scan_update``: true): a run whose scans had no valid point (all NaN, empty,
+  unreadable), or that never moved far enough for an update, tracked with odometry alone and is not a
+  success, whatever its error. Runs that weighed scans keep the paper's definition unchanged.
+  ``failure_reason`` says why a run failed (None for a success).
+* **Frames localized from scans** (given): frames whose scan had valid points for the filter to weigh
+  against (``frames_localized_from_scans``, ``frames_without_scan``), and the updates that weighed one
+  (``scan_updates``).
 * **Location RMSE** over (x, y) and **yaw RMSE** in degrees, over the frames from convergence on.
 * **Frames to converge**: from the first frame of the run.
 * **Wrong convergences** (given the frames where the filter declared convergence): declared while more
@@ -58,11 +67,33 @@ def localization_metrics(
     recovery_frames: list[int] | None = None,
     false_alarm_m: float = 2.0,
     caught_within: int = 10,
+    frames_with_scan: int | None = None,
+    updates: np.ndarray | None = None,
 ) -> dict:
     """The metrics of the module docstring as a JSON-ready dict (NaN-free: missing values are None).
-    Frame numbers (``converged_frame`` and the event lists) count from the first row of the arrays."""
+    Frame numbers (``converged_frame`` and the event lists) count from the first row of the arrays.
+    ``frames_with_scan``: how many frames had a scan with valid points for the filter; ``updates``
+    ``(N,)`` bool: the frames at which the filter weighed a scan (then success needs one from the
+    convergence frame on). None: not known (the fields are left out, success as the paper's)."""
     loc, yaw = pose_errors(estimate_xyyaw, truth_xyyaw)
     n = len(loc)
+    scans: dict = {}
+    if frames_with_scan is not None:
+        scans.update(
+            frames_localized_from_scans=int(frames_with_scan), frames_without_scan=n - int(frames_with_scan)
+        )
+    weighed = None  # a scan weighed from the convergence frame on (from the first frame while not converged)
+    if updates is not None:
+        updates = np.asarray(updates, bool).reshape(-1)
+        if len(updates) != n:
+            raise InputError(f"updates: {len(updates)} flags for {n} frames")
+        weighed = bool(updates[converged_frame if converged_frame is not None else 0 :].any())
+        scans.update(scan_updates=int(updates.sum()), success_requires_a_scan_update=True)
+    no_scan = None
+    if frames_with_scan == 0:
+        no_scan = "no frame had a scan with a valid point: the estimate is odometry alone"
+    elif weighed is False:
+        no_scan = "the filter weighed no scan from the convergence frame on: the estimate is odometry alone"
     events = convergence_events(
         loc, convergence_frames, recovery_frames, success_m=success_m, false_alarm_m=false_alarm_m
     )
@@ -80,14 +111,19 @@ def localization_metrics(
         "success_threshold_m": success_m,
         "check_every": check_every,
         **events,
+        **scans,
     }
     if converged_frame is None or not 0 <= converged_frame < n:
-        out.update(success=False, checked_frames=[], location_rmse_m=None, yaw_rmse_deg=None)
+        out.update(success=False, failure_reason=no_scan or "never converged", checked_frames=[])
+        out.update(location_rmse_m=None, yaw_rmse_deg=None)
         return out
     checks = list(range(converged_frame, n, check_every))
     after = slice(converged_frame, n)
+    close = bool(np.all(loc[checks] < success_m))
+    far = f"location error {loc[checks].max():.2f} m at a checked frame (success: under {success_m:g} m)"
     out.update(
-        success=bool(np.all(loc[checks] < success_m)),
+        success=close and no_scan is None,
+        failure_reason=no_scan or (None if close else far),
         checked_frames=checks,
         max_error_at_checks_m=float(loc[checks].max()),
         location_rmse_m=float(np.sqrt(np.mean(loc[after] ** 2))),
@@ -181,6 +217,7 @@ def evaluate_results(results_dir, gt_path, *, check_every: int = 100, success_m:
         )
     est_l = est @ Tr
     gt_l = gt[first : first + len(est)] @ Tr
+    with_scan = summary.get("frames_localized_from_scans")  # (results of an earlier version: not known)
     metrics = localization_metrics(
         xyyaw_of(est_l),
         xyyaw_of(gt_l),
@@ -189,11 +226,30 @@ def evaluate_results(results_dir, gt_path, *, check_every: int = 100, success_m:
         success_m=success_m,
         convergence_frames=conv_frames,
         recovery_frames=rec_frames,
+        frames_with_scan=with_scan if isinstance(with_scan, int) and 0 <= with_scan <= len(est) else None,
+        updates=_updated_column(results_dir / "frames.csv", len(est)),
     )
     shift_event_frames(metrics, first)
     metrics["first_frame"] = first
     metrics["ground_truth"] = str(gt_path)
     return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in metrics.items()}
+
+
+def _updated_column(path: Path, n: int) -> np.ndarray | None:
+    """The ``updated`` column of a results folder's ``frames.csv`` (the frames at which the filter weighed
+    a scan), when it has one for each of the ``n`` frames; else None."""
+    try:
+        lines = path.read_text().splitlines()
+    except OSError:
+        return None
+    cols = lines[0].split(",") if lines else []
+    if "updated" not in cols or len(lines) != n + 1:
+        return None
+    at = cols.index("updated")
+    try:
+        return np.array([line.split(",")[at] == "1" for line in lines[1:]], bool)
+    except IndexError:
+        return None
 
 
 def _evaluate_partial(results_dir: Path, gt_path, *, check_every: int, success_m: float) -> dict:
@@ -214,13 +270,14 @@ def _evaluate_partial(results_dir: Path, gt_path, *, check_every: int, success_m
     need = ("frame", "x", "y", "yaw", "converged", "recovered")
     if any(c not in cols for c in need):
         raise InputError(f"{path}: not a `rangemcl localize` frames.csv (columns {', '.join(need)} expected)")
-    rows = []
+    rows, updated = [], []
     for n, line in enumerate(lines[1:], start=2):
         parts = line.split(",")
         if len(parts) != len(cols):
             break  # a last line cut by the kill
         try:
             rows.append([float(parts[cols.index(c)]) for c in need])
+            updated.append(parts[cols.index("updated")] == "1" if "updated" in cols else False)
         except ValueError:
             raise InputError(f"{path}: line {n} is not numbers") from None
     if not rows:
@@ -245,6 +302,7 @@ def _evaluate_partial(results_dir: Path, gt_path, *, check_every: int, success_m
         success_m=success_m,
         convergence_frames=onsets,
         recovery_frames=recoveries,
+        updates=np.asarray(updated, bool) if "updated" in cols else None,
     )
     shift_event_frames(metrics, first)
     metrics["first_frame"] = first

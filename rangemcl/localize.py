@@ -178,18 +178,22 @@ class FrameLog:
     particles: np.ndarray  # (n,)
     seconds: np.ndarray  # (n,)
     converged: np.ndarray  # (n,) bool
+    scanned: np.ndarray  # (n,) bool: the frame's scan had valid points for the filter to weigh against
+    updated: np.ndarray  # (n,) bool: the filter weighed the frame's scan (an update)
     done: int = 0
     interrupted: bool = False
     wall_s: float = 0.0
 
     @classmethod
     def empty(cls, n: int) -> FrameLog:
-        return cls(np.zeros((n, 3)), np.zeros(n, np.int64), np.zeros(n), np.zeros(n, bool))
+        flags = [np.zeros(n, bool) for _ in range(3)]  # converged, scanned, updated
+        return cls(np.zeros((n, 3)), np.zeros(n, np.int64), np.zeros(n), *flags)
 
     def trim(self) -> None:
         k = self.done
         self.estimate, self.particles = self.estimate[:k], self.particles[:k]
         self.seconds, self.converged = self.seconds[:k], self.converged[:k]
+        self.scanned, self.updated = self.scanned[:k], self.updated[:k]
 
 
 class LocalizationPipeline:
@@ -207,6 +211,8 @@ class LocalizationPipeline:
             recoveries=0,
             skipped_scans=0,
             unreadable_scans=0,
+            nan_points_dropped=0,  # points of a scan that are not finite (NaN, inf): the filter drops them
+            scans_with_nan_points=0,
             recovery_frames=[],
             convergence_frames=[],
             vetoed_frames=[],
@@ -424,6 +430,7 @@ class LocalizationPipeline:
                     delta, points, fire_time_s=fire, frame_period_s=period, roll_pitch=rp, dt_s=dt
                 )
                 self._record(k, i, info)
+                log.scanned[k] = self._count_points(points) and not info.skipped_scan
                 if self.viz.enabled:
                     self.viz.frame(
                         i,
@@ -496,6 +503,8 @@ class LocalizationPipeline:
             None if conv is None else conv - first,
             convergence_frames=[f - first for f in ev["convergence_frames"]],
             recovery_frames=[f - first for f in ev["recovery_frames"]],
+            frames_with_scan=int(self.log.scanned.sum()),
+            updates=self.log.updated,
         )
         shift_event_frames(metrics, first)
         metrics["first_frame"] = first
@@ -540,6 +549,9 @@ class LocalizationPipeline:
             "skipped_scans": ev["skipped_scans"],
             "unreadable_scans": ev["unreadable_scans"],
             "unreadable_scan_errors": ev.get("unreadable_files", [])[:100],
+            "nan_points_dropped": ev.get("nan_points_dropped", 0),
+            "scans_with_nan_points": ev.get("scans_with_nan_points", 0),
+            "frames_localized_from_scans": int(log.scanned.sum()),  # its scan had valid points to weigh
             "odometry_source": self.odo_source,
             "sensor_height_m": self.height,
             "sensor_height_source": self.height_source,
@@ -583,6 +595,9 @@ class LocalizationPipeline:
                     "wrong_convergences_count",
                     "wrong_convergences_uncaught",
                     "false_alarms_count",
+                    "frames_localized_from_scans",
+                    "frames_without_scan",
+                    "failure_reason",
                 )
             }
         atomic_write(self.out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
@@ -612,6 +627,7 @@ class LocalizationPipeline:
         log.particles[k] = info.particles
         log.seconds[k] = info.seconds
         log.converged[k] = info.converged
+        log.updated[k] = info.updated
         ev["updates"] += info.updated
         ev["resamples"] += info.resampled
         ev["skipped_scans"] += info.skipped_scan
@@ -626,6 +642,19 @@ class LocalizationPipeline:
         if info.converged and ev["converged_frame"] is None:
             ev["converged_frame"] = i
             self.snapshots[f"frame_{i:06d}_converged"] = self.loc.particles.copy()
+
+    def _count_points(self, points) -> bool:
+        """Count the points of a frame's scan that are not finite (NaN, inf: the filter drops them) in the
+        summary; whether any finite point is left (None, an unreadable scan: none)."""
+        if points is None or not len(points):
+            return False
+        finite = np.isfinite(np.asarray(points).reshape(len(points), -1)).all(axis=1)
+        dropped = len(finite) - int(np.count_nonzero(finite))
+        if dropped:
+            ev = self.events
+            ev["nan_points_dropped"] = ev.get("nan_points_dropped", 0) + dropped
+            ev["scans_with_nan_points"] = ev.get("scans_with_nan_points", 0) + 1
+        return dropped < len(finite)
 
     def _csv_line(self, i: int, info) -> str:
         seq, e = self.seq, info.estimate

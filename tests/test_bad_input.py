@@ -1075,3 +1075,92 @@ def test_in_process_equals_a_process(base, tmp_path):
             [sys.executable, "-c", code, *args[1:]], capture_output=True, text=True, timeout=120
         )
         assert (out.returncode, out.stderr) == run_cli(args[0], args[1:])
+
+
+def test_a_map_memory_budget_too_small_is_refused_before_the_first_frame(base, tmp_path):
+    """``--map-memory`` short of what the run needs (what is held besides the tiles: the ground grid, the
+    drivable area, the place prior, the beam prior the first update loads for scans with nothing in the
+    high band; and room for the largest tile) is refused before the first frame: one line with the total
+    and its parts, exit status 2, nothing left in --out. Before, a budget that held all but the beam prior
+    failed at the first update and left --out behind, and one that held no tile said "the smallest needs
+    0.0 MB". The total it names runs."""
+    import re
+
+    d = _case_folder(base, tmp_path, {})
+    run = [*LOC.format(d=d).split()[1:], "--no-plots"]
+    code, err = run_cli("rangemcl", [*run, "--map-memory", "10"])  # room to spare: what the run holds
+    assert code in (0, None), err
+    derived = json.loads((d / "o" / "summary.json").read_text())["map_memory"]["derived_mb"]
+    assert {"ground grid", "drivable area", "place prior", "beam place prior"} <= set(derived)
+    shutil.rmtree(d / "o")
+    held = sum(derived.values())
+    beam = derived["beam place prior"]
+    words = ["--map-memory", "is too small for this run", "ground grid", "place prior", "beam place prior"]
+    totals = []
+    for budget in (held - beam / 2, held - beam + 1e-4):  # frames later; no tile fits
+        _check(d, LOC + f" --no-plots --map-memory {budget:.6f}", [*words, "the largest tile"])
+        assert not (d / "o").exists()
+        _code, err = run_cli("rangemcl", [*run, "--map-memory", f"{budget:.6f}"])
+        totals.append(float(re.search(r"it needs ([0-9.]+) MB in all \(", err).group(1)))
+    assert totals[0] == totals[1] >= held
+    code, err = run_cli("rangemcl", [*run, "--map-memory", str(totals[0])])  # the total it names fits
+    assert code in (0, None), err
+    summary = json.loads((d / "o" / "summary.json").read_text())
+    assert summary["frames"] == N_FRAMES and summary["map_memory"]["needed_mb"] <= totals[0]
+
+
+def _nan_drive(d: Path, nan_frames: set[int], n: int = 20) -> None:
+    """The base sequence made ``n`` frames long (0.5 m a frame along x), the scans of ``nan_frames`` all
+    NaN (x, y, z and intensity)."""
+    seq = d / "seq"
+    shutil.rmtree(seq / "velodyne")
+    (seq / "velodyne").mkdir()
+    for k in range(n):
+        scan = ground_scan()
+        if k in nan_frames:
+            scan[:] = np.nan
+        (seq / "velodyne" / f"{k:06d}.bin").write_bytes(scan.tobytes())
+    poses = "".join(pose_line(0.5 * k) for k in range(n))
+    (seq / "poses.txt").write_text(poses)
+    (seq / "odometry.txt").write_text(poses)
+    (seq / "times.txt").write_text("".join(f"{0.1 * k:.9f}\n" for k in range(n)))
+
+
+def test_a_drive_without_valid_points_is_odometry_alone_not_a_success(base, tmp_path):
+    """Scans that are all NaN: the metrics and the summary say how many frames were localized from scans,
+    the summary counts the NaN points dropped, and a run whose filter never had a scan to weigh is not a
+    success (the reason in metrics.json and in the metrics line), also when evaluated again; a drive with
+    some scans keeps the paper's success."""
+    from rangemcl.cli import _metrics_line
+
+    runs = {}
+    for name, nan_frames in (("some", set(range(3, 17))), ("none", set(range(20)))):
+        d = _case_folder(base, tmp_path / name, {})
+        _nan_drive(d, nan_frames)
+        code, err = run_cli("rangemcl", [*LOC.format(d=d).split()[1:], "--mode", "tracking", "--no-plots"])
+        assert code in (0, None), err
+        metrics = json.loads((d / "o" / "metrics.json").read_text())
+        summary = json.loads((d / "o" / "summary.json").read_text())
+        assert summary["nan_points_dropped"] == len(nan_frames) * N_POINTS
+        assert summary["scans_with_nan_points"] == len(nan_frames)
+        scanned = 20 - len(nan_frames)
+        assert metrics["frames_localized_from_scans"] == summary["frames_localized_from_scans"] == scanned
+        assert metrics["frames_without_scan"] == len(nan_frames)
+        assert metrics["success_requires_a_scan_update"] is True
+        runs[name] = d, metrics, summary
+    _d, metrics, summary = runs["some"]
+    assert metrics["success"] and metrics["failure_reason"] is None and metrics["scan_updates"] > 0
+    assert "success" in _metrics_line(summary["metrics"]) and "6 of 20 frames localized from scans" in (
+        _metrics_line(summary["metrics"])
+    )
+    d, metrics, summary = runs["none"]
+    assert metrics["location_rmse_m"] < 0.01  # odometry alone, from the true start ...
+    assert not metrics["success"] and metrics["scan_updates"] == 0  # ... is not a success
+    assert "no frame had a scan with a valid point" in metrics["failure_reason"]
+    assert not summary["metrics"]["success"]
+    line = _metrics_line(summary["metrics"])
+    assert "FAILURE (no frame had a scan with a valid point" in line and "0 of 20 frames" in line
+    code, err = run_cli("rangemcl", ["evaluate", str(d / "o"), "--gt", str(d / "seq" / "poses.txt")])
+    assert code in (0, None), err
+    again = json.loads((d / "o" / "metrics.json").read_text())
+    assert not again["success"] and again["failure_reason"] == metrics["failure_reason"]

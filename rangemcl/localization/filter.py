@@ -87,6 +87,16 @@ HELD_YAW_RAD = math.radians(20.0)  # a fresh prior particle this close in yaw to
 # cluster_m) is a place the search holds already
 
 
+def _prior_nbytes(area: DrivableArea, params: PriorParams) -> int:
+    """What the place prior of ``params`` over ``area`` holds in memory (:attr:`PlacePrior.nbytes`), known
+    before it is loaded or rendered."""
+    from rangemcl.localization.place_prior import COARSE_FACTOR, TWO_STAGE_MIN_CELLS, grid_cells
+
+    cells = len(grid_cells(area.corners, area.cell_m, params.cell_m))
+    profiles = cells * params.rows * params.bins * np.dtype(params.dtype).itemsize
+    return 16 * cells + profiles + (profiles // COARSE_FACTOR if cells >= TWO_STAGE_MIN_CELLS else 0)
+
+
 @dataclass
 class StepInfo:
     """What one :meth:`MonteCarloLocalizer.step` did."""
@@ -393,6 +403,7 @@ class MonteCarloLocalizer:
         place prior on, a share of them is redrawn at the first update from the places that match that
         scan (:mod:`rangemcl.localization.place_prior`)."""
         n = int(n or self.global_count)
+        self._check_budget(search=True)  # before the place prior is loaded or rendered
         self._spread_count = n
         self._set_particles(
             uniform_particles(
@@ -451,7 +462,25 @@ class MonteCarloLocalizer:
         self._since_search = 0 if settle else -1
         self._prior_pending = False
         self.last_estimate = x0.copy()
+        self._check_budget(search=False)
         self._preload()
+
+    def _check_budget(self, search: bool) -> None:
+        """Before the first frame, a map within a memory budget is checked against all the run needs
+        (:meth:`rangemcl.mapping.view.MapView.check_budget`), the place priors it may load later included:
+        the band prior of a search (now, or after the lost detector re-spreads the particles; its second
+        opinion reads it too) and the beam prior a scan with nothing in the high band asks for. A budget
+        short of it is refused in one line now, not frames later."""
+        check = getattr(self.map, "check_budget", None)
+        if check is None or self._stepped:
+            return
+        expected = {}
+        if self.use_prior and (search or self.lost is not None):
+            expected["place prior"] = _prior_nbytes(self.init_cells, self.prior_params)
+            if self.use_beam_prior:  # (its size does not depend on the beam's elevation)
+                beam = beam_params(self.prior_params, -10.0, self.sensor_height_m)
+                expected["beam place prior"] = _prior_nbytes(self.init_cells, beam)
+        check(expected)
 
     def _preload(self) -> None:
         """Before the first frame, a map within a memory budget loads the tiles that the particles need

@@ -35,11 +35,15 @@ well.
 
 The ground grid, the mapping drive and the index stay whole (13 bytes per m² of map, 16 bytes a drive
 point, a line per tile), and so do the place prior's profiles and the drivable area's cells: all of them
-count against the budget (:meth:`MapView.reserve`), and the tiles get what is left.
+count against the budget (:meth:`MapView.reserve`), and the tiles get what is left. Before its first
+frame the localizer checks the budget against all it needs (:meth:`MapView.check_budget`: what is held
+besides the tiles, the place priors it may load later, and room for the largest tile at its smallest
+level): a budget short of that is one error line with the total and its parts, not a failure frames later.
 """
 
 from __future__ import annotations
 
+import math
 import os
 import sys
 import time
@@ -56,6 +60,19 @@ from rangemcl.mapping.store import TileStore
 # What the localizer holds of a whole map (MeshMap + one BVH) per triangle: town_large's 6.7 M triangles
 # took 1.10 GB in `rangemcl localize` (README, performance)
 WHOLE_MAP_BYTES_PER_TRIANGLE = 165.0
+
+
+def _mb(nbytes: int, up: bool = False) -> str:
+    """``nbytes`` in MB to 3 significant digits (at most 4 decimals); ``up``: rounded up, so that
+    ``--map-memory`` given the number it prints holds ``nbytes``."""
+    x = nbytes / 1e6
+    d = 0 if x >= 100 else 4 if x <= 0 else min(4, 2 - math.floor(math.log10(x)))
+    if not up:
+        return f"{x:.{d}f} MB"
+    s = f"{math.ceil(x * 10**d) / 10**d:.{d}f}"
+    while int(float(s) * 1e6) < nbytes:  # as MapView reads the budget
+        s = f"{float(s) + 10**-d:.{d}f}"
+    return f"{s} MB"
 
 
 def available_memory_bytes() -> int:
@@ -140,6 +157,8 @@ class MapView:
             self.store, self.budget_bytes, kind=caster_tiles(caster), background=background, coarse=coarse
         )
         self.derived: dict[str, int] = {}  # what else is held of the map, counted in the budget (reserve)
+        self.expected: dict[str, int] = {}  # what the run may hold later, counted by check_budget
+        self.checked = False  # check_budget passed: from then on a reserve that leaves nothing is an error
         ground = sum(a.nbytes for a in vars(self.ground).values() if isinstance(a, np.ndarray))
         self.reserve("ground grid", ground)
         if self.drive_xy is not None:
@@ -189,22 +208,58 @@ class MapView:
         name ``what`` (a second call with the same name replaces the first): the tiles get what is left.
         Call it before the tiles are loaded, or (an item that follows the tiles held, the likelihood
         field's voxels) between updates: the next update evicts what no longer fits. An error line when
-        nothing is left for the tiles."""
+        nothing is left for the tiles, saying what the run needs in all (:meth:`needed`); before
+        :meth:`check_budget` (the localizer's, before its first frame) it waits for that check or for the
+        first update, so that the line counts everything."""
         self.derived[what] = int(nbytes)
         left = self.budget_bytes - sum(self.derived.values())
-        if left <= 0:
-            held = ", ".join(f"{k} {v / 1e6:.1f} MB" for k, v in self.derived.items())
-            raise InputError(
-                f"{self.source_dir}: --map-memory {self.budget_bytes / 1e6:g} MB leaves nothing for the "
-                f"map's tiles ({held}); give a larger budget"
-            )
-        self.cache.budget_bytes = left
+        if left <= 0 and self.checked:
+            raise self._too_small(self.needed())
+        self.cache.budget_bytes = max(left, 0)
+
+    def needed(self, tile: tuple[str, int] | None = None) -> dict[str, int]:
+        """What the budget must hold, by name, in bytes: what is held besides the tiles (:meth:`reserve`),
+        what the run may hold later (:meth:`check_budget`'s ``expected``: the place priors) and ``tile``
+        (name, bytes), by default the largest tile at its smallest level (at the coarse level where the map
+        has one): room for any one tile the particles may come to, so that an update never holds none of
+        the tiles in range."""
+        parts = dict(self.derived)
+        parts.update({k: v for k, v in self.expected.items() if k not in parts})
+        if tile is None and self.cache.sizes:
+            full, coarse = max(self.cache.sizes, key=lambda fc: min(fc[0], fc[0] if fc[1] is None else fc[1]))
+            if coarse is not None and coarse < full:
+                tile = ("the largest tile (coarse level)", coarse)
+            else:
+                tile = ("the largest tile", full)
+        if tile is not None:
+            parts[tile[0]] = int(tile[1])
+        return parts
+
+    def check_budget(self, expected: dict[str, int] | None = None) -> None:
+        """Before the first frame: one error line, saying the total and what it is made of, when the budget
+        is smaller than what the run needs (:meth:`needed`, with ``expected``: name -> bytes of what the run
+        may hold later, e.g. the place priors), instead of a failure frames later."""
+        self.expected = {k: int(v) for k, v in (expected or {}).items()}
+        parts = self.needed()
+        if sum(parts.values()) > self.budget_bytes:
+            raise self._too_small(parts)
+        self.checked = True
+
+    def _too_small(self, parts: dict[str, int], what: str = "is too small for this run") -> InputError:
+        listed = ", ".join(f"{k} {_mb(v)}" for k, v in parts.items())
+        return InputError(
+            f"{self.source_dir}: --map-memory {self.budget_bytes / 1e6:g} MB {what}: it needs "
+            f"{_mb(sum(parts.values()), up=True)} in all ({listed})"
+            + ("" if self.cache.use_coarse else "; or add a coarse level: rangemcl map-coarse")
+        )
 
     def update(self, xy: np.ndarray, radius_m: float, *, wait: bool = True, cell_m: float = 10.0) -> dict:
         """Hold the tiles within ``radius_m`` of the positions ``xy`` ``(N, 2)`` (reduced to one focus per
         ``cell_m`` cell) within the budget and load those ``prefetch_m`` farther; ``wait``: wait for the
         tiles within the radius that are still loading (else go without them). What it did, for the
         frame log."""
+        if self.budget_bytes <= sum(self.derived.values()):  # nothing left for the tiles
+            raise self._too_small(self.needed())
         xy = np.asarray(xy, np.float64).reshape(-1, 2)
         xy = xy[np.isfinite(xy).all(axis=1)]
         focus = (np.unique(np.floor(xy / cell_m), axis=0) + 0.5) * cell_m
@@ -221,12 +276,8 @@ class MapView:
         )
         if r.wanted and not self.cache.items and not r.loading:
             need = min(self.cache.sizes[k][1] or self.cache.sizes[k][0] for k in r.wanted)
-            raise InputError(
-                f"{self.source_dir}: --map-memory {self.budget_bytes / 1e6:g} MB holds none of the tiles in "
-                f"range (the smallest needs {need / 1e6:.1f} MB"
-                + ("" if self.cache.use_coarse else "; or add a coarse level: rangemcl map-coarse")
-                + ")"
-            )
+            tile = ("the smallest tile in range" + (" (coarse level)" if self.cache.use_coarse else ""), need)
+            raise self._too_small(self.needed(tile), "holds none of the tiles in range")
         self.in_range = list(r.held)  # the tiles within the radius held now (the likelihood field's)
         self.last_wait = bool(wait)  # ... and whether this update waited for them
         self.updates += 1
@@ -290,6 +341,7 @@ class MapView:
             "budget_mb": self.budget_bytes / 1e6,
             "tiles_budget_mb": self.cache.budget_bytes / 1e6,
             "derived_mb": {k: v / 1e6 for k, v in self.derived.items()},
+            "needed_mb": sum(self.needed().values()) / 1e6,  # what check_budget asks of the budget
             "peak_mb": self.cache.peak_bytes / 1e6,
             "tiles": len(self.store.entries),
             "tile_loads": self.loads,

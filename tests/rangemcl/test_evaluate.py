@@ -116,7 +116,7 @@ def test_an_interrupted_run_is_evaluated_from_its_frames_csv_and_said_partial(tm
         conv = int(k >= 5)
         row = dict.fromkeys(cols, "0")
         row.update(frame=str(i), x=f"{0.8 * i + (0.1 if conv else 30.0):.4f}", y="0", yaw="0")
-        row.update(converged=str(conv), recovered="0")
+        row.update(converged=str(conv), recovered="0", updated="1")  # a scan weighed at every frame
         lines.append(",".join(row[c] for c in cols))
     text = "\n".join(lines) + "\n" + "55,5.5,1.0"  # a last line cut by the kill
     (run / "frames.csv").write_text(text)

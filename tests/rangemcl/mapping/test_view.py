@@ -146,9 +146,9 @@ def test_a_map_of_format_1_is_refused_with_the_fix(small_town_map, tmp_path, sav
         MapView(tmp_path / "v1", 100.0, RayCaster("cpu", 1))
     with pytest.raises(InputError, match="--map-memory"):
         MapView(map_dir, -1.0, RayCaster("cpu", 1))
-    # the ground grid and the mapping drive count against the budget: one line when nothing is left
-    with pytest.raises(InputError, match=r"leaves nothing for the map's tiles \(ground grid"):
-        MapView(map_dir, 0.01, RayCaster("cpu", 1))
+    # the ground grid and the mapping drive count against the budget: one line with what it needs in all
+    with pytest.raises(InputError, match=r"0.01 MB is too small for this run: it needs .* \(ground grid"):
+        MapView(map_dir, 0.01, RayCaster("cpu", 1)).check_budget()
     derived = MapView(map_dir, 100.0, RayCaster("cpu", 1)).derived
     assert derived["ground grid"] > 0
     # a budget below the nearest tile: one line saying what it takes, not an empty scene
