@@ -500,6 +500,23 @@ def place_prior_cmd(
     _place_prior_step(map_dir, config, map_memory, threads, required=True)
 
 
+@app.command("settings")
+def settings_cmd(
+    config: Path = typer.Option(None, help="A localizer settings YAML: print its effective settings."),
+) -> None:
+    """Print the localizer's settings as YAML: the defaults, or a config's effective settings (what
+    `rangemcl localize --config` runs with; every run also writes them to its results' config.yaml). The
+    keys, their units and effects: the documentation's settings reference."""
+    import yaml
+
+    from rangemcl.config import load_config, to_dict
+    from rangemcl.mcl import LocalizerSettings
+
+    settings = load_config(LocalizerSettings, config)
+    settings.check(str(config) if config is not None else "settings")
+    typer.echo(yaml.safe_dump(to_dict(settings), sort_keys=False), nl=False)
+
+
 @app.command("map-info")
 def map_info(map_dir: Path = typer.Argument(..., help="A map folder.")) -> None:
     """Print a map's size, triangles, tiles, extent, coarse level and place prior; every tile is read and

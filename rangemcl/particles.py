@@ -23,10 +23,10 @@ from rangemcl.se2 import wrap_angle as wrap_angle
 class MotionNoise:
     """Noise of the odometry motion model (Thrun et al.): standard deviations grow with the motion."""
 
-    rot_per_rot: float = 0.05  # alpha1: rotation noise per radian turned
-    rot_per_trans: float = 0.005  # alpha2: rotation noise (rad) per metre driven
-    trans_per_trans: float = 0.05  # alpha3: translation noise per metre driven
-    trans_per_rot: float = 0.05  # alpha4: translation noise (m) per radian turned
+    rot_per_rot: float  # alpha1: rotation noise per radian turned
+    rot_per_trans: float  # alpha2: rotation noise (rad) per metre driven
+    trans_per_trans: float  # alpha3: translation noise per metre driven
+    trans_per_rot: float  # alpha4: translation noise (m) per radian turned
 
 
 def sample_motion(

@@ -48,19 +48,19 @@ class OdometryCalibrator:
 
     def __init__(
         self,
-        scale: float = 1.0,
-        gyro_bias_rad_s: float = 0.0,
         *,
-        estimate_scale: bool = True,
-        estimate_bias: bool = True,
-        window_m: float = 100.0,
-        window_s: float = 300.0,
-        prior_m: float = 3.0,
-        prior_s: float = 0.3,
-        outlier_m: float = 0.25,
-        outlier_deg: float = 2.0,
-        min_scale: float = 0.8,
-        max_scale: float = 1.25,
+        scale: float,
+        gyro_bias_rad_s: float,
+        estimate_scale: bool,
+        estimate_bias: bool,
+        window_m: float,
+        window_s: float,
+        prior_m: float,
+        prior_s: float,
+        outlier_m: float,
+        outlier_deg: float,
+        min_scale: float,
+        max_scale: float,
     ):
         self.scale0 = float(scale)
         self.bias0 = float(gyro_bias_rad_s)
@@ -147,17 +147,17 @@ class ParticleCalibration:
 
     def __init__(
         self,
-        scale: float = 1.0,
-        gyro_bias_rad_s: float = 0.0,
         *,
-        estimate_scale: bool = True,
-        estimate_bias: bool = True,
-        sigma_scale: float = 0.03,
-        sigma_bias_rad_s: float = math.radians(0.5),
-        walk_scale: float = 0.001,
-        walk_bias_rad_s: float = math.radians(0.005),
-        min_scale: float = 0.8,
-        max_scale: float = 1.25,
+        scale: float,
+        gyro_bias_rad_s: float,
+        estimate_scale: bool,
+        estimate_bias: bool,
+        sigma_scale: float,
+        sigma_bias_rad_s: float,
+        walk_scale: float,
+        walk_bias_rad_s: float,
+        min_scale: float,
+        max_scale: float,
     ):
         self.scale0 = float(scale)
         self.bias0 = float(gyro_bias_rad_s)

@@ -29,7 +29,7 @@ class DrivableArea:
     headings: np.ndarray | None
 
 
-def drivable_cells(mesh_map, drive_radius_m: float = 6.0) -> DrivableArea:
+def drivable_cells(mesh_map, drive_radius_m: float) -> DrivableArea:
     """The map's measured ground cells, and of those only the ones within ``drive_radius_m`` of the
     mapping drive when the map keeps its drive (``drive_xy``), with the drive's heading there."""
     g = mesh_map.ground
@@ -57,8 +57,8 @@ def uniform_particles(
     n: int,
     rng: np.random.Generator,
     *,
-    uniform_yaw_share: float = 0.25,
-    heading_sigma_rad: float = np.radians(15.0),
+    uniform_yaw_share: float,
+    heading_sigma_rad: float,
 ) -> np.ndarray:
     """``n`` particles ``(x, y, yaw)`` uniform over the area's cells; where the area has the drive's
     headings, all but ``uniform_yaw_share`` of them face along it (either way)."""

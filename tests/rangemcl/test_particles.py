@@ -7,6 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from rangemcl.localization.factory import motion_noise
+from rangemcl.localization.settings import MotionSettings
 from rangemcl.particles import (
     MotionNoise,
     circular_mean,
@@ -86,8 +88,8 @@ def test_noise_free_motion_reproduces_odometry(seed):
 def test_motion_noise_grows_with_distance():
     rng = np.random.default_rng(0)
     p = np.zeros((5000, 3))
-    short = sample_motion(p, (0.0, 1.0, 0.0), MotionNoise(), rng)
-    long = sample_motion(p, (0.0, 10.0, 0.0), MotionNoise(), rng)
+    short = sample_motion(p, (0.0, 1.0, 0.0), motion_noise(MotionSettings()), rng)
+    long = sample_motion(p, (0.0, 10.0, 0.0), motion_noise(MotionSettings()), rng)
     assert long[:, 0].std() > 5 * short[:, 0].std()
     assert abs(short[:, 0].mean() - 1.0) < 0.01
 

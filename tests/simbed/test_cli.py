@@ -109,7 +109,7 @@ def test_export_mesh_is_the_static_scene(tmp_path):
     off = distance_to_roads(xy, world.graph)  # from the roads' centre lines: a lane, corners cut at junctions
     assert np.median(off) < world.town.road_width_m / 2 and off.max() < world.town.road_width_m
     from rangemcl.mapping.meshmap import MeshMap
-    from rangemcl.mcl import drivable_cells
+    from rangemcl.mcl import InitSettings, drivable_cells
 
     maps = {}
     for name, extra in (("with_drive", ["--drive", str(route)]), ("without", [])):
@@ -121,11 +121,11 @@ def test_export_mesh_is_the_static_scene(tmp_path):
     assert maps["without"].drive_xy is None and len(drive) > 100
     steps = np.linalg.norm(np.diff(drive[:-1], axis=0), axis=1)
     assert steps.min() >= 1.0 - 1e-9  # thinned to a point a metre (the last point kept as it is)
-    near = len(drivable_cells(maps["with_drive"]).corners)
+    near = len(drivable_cells(maps["with_drive"], InitSettings().drive_radius_m).corners)
     assert (
-        0.2 * len(drivable_cells(maps["without"]).corners)
+        0.2 * len(drivable_cells(maps["without"], InitSettings().drive_radius_m).corners)
         < near
-        < 0.8 * len(drivable_cells(maps["without"]).corners)
+        < 0.8 * len(drivable_cells(maps["without"], InitSettings().drive_radius_m).corners)
     )
 
 

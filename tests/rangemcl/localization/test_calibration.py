@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from rangemcl import meshgen
-from rangemcl.localization.calibration import OdometryCalibrator
+from rangemcl.localization.factory import odometry_calibrator
 from rangemcl.mapping.meshmap import MeshMap
-from rangemcl.mcl import LocalizerSettings, ObservationSettings, build_localizer
+from rangemcl.mcl import LocalizerSettings, MotionSettings, ObservationSettings, build_localizer
 from rangemcl.rangeimage import RangeImageGeometry
 from rangemcl.raycast import RayCaster
 from rangemcl.se2 import se2_between, se2_compose
@@ -48,7 +48,7 @@ def test_scale_and_bias_converge_on_random_drives(seed):
     rng = np.random.default_rng(seed)
     odo_scale = rng.uniform(0.95, 1.05)  # the wheel reads this times the true distance
     bias = math.radians(rng.uniform(-1.0, 1.0))
-    cal = OdometryCalibrator()
+    cal = odometry_calibrator(MotionSettings())
     truth = _path(rng, 250, speed=0.8)  # 200 m, an update every 0.8 m (8 m/s)
     hist = _drive(cal, truth, odo_scale, bias, 0.1, rng)
     assert cal.scale == pytest.approx(1.0 / odo_scale, rel=0.003)
@@ -59,7 +59,7 @@ def test_scale_and_bias_converge_on_random_drives(seed):
 
 
 def test_standing_still_measures_the_bias_and_leaves_the_scale():
-    cal = OdometryCalibrator(scale=1.02)
+    cal = odometry_calibrator(MotionSettings(odometry_scale=1.02))
     bias = math.radians(0.4)
     for _ in range(100):  # 100 intervals of 1 s without moving; the gyro turns, the estimate does not
         cal.observe(np.array([0.0, 0.0, bias * 1.0]), 1.0, np.zeros(3), np.zeros(3))
@@ -69,7 +69,7 @@ def test_standing_still_measures_the_bias_and_leaves_the_scale():
 
 def test_reversing_and_turning_on_the_spot():
     rng = np.random.default_rng(3)
-    cal = OdometryCalibrator()
+    cal = odometry_calibrator(MotionSettings())
     pose = np.zeros(3)
     for k in range(900):  # 300 m backwards; the configured scale's weight is forgotten
         spot = k % 3 == 2  # turn on the spot (no translation), else reverse
@@ -83,7 +83,7 @@ def test_reversing_and_turning_on_the_spot():
 
 
 def test_a_jump_of_the_estimate_is_left_out():
-    cal = OdometryCalibrator()
+    cal = odometry_calibrator(MotionSettings())
     assert not cal.observe(np.array([1.0, 0.0, 0.0]), 0.1, np.zeros(3), np.array([3.0, 0.0, 0.0]))
     assert cal.rejected == 1 and cal.scale == 1.0
     cal.reset()
@@ -91,7 +91,7 @@ def test_a_jump_of_the_estimate_is_left_out():
 
 
 def test_correct_applies_scale_and_bias():
-    cal = OdometryCalibrator(scale=1.05, gyro_bias_rad_s=0.01)
+    cal = odometry_calibrator(MotionSettings(odometry_scale=1.05, gyro_bias_deg_s=math.degrees(0.01)))
     assert cal.correct([1.0, 2.0, 0.5], 0.1) == pytest.approx([1.05, 2.1, 0.499])
     assert cal.correct([1.0, 2.0, 0.5], None) == pytest.approx([1.05, 2.1, 0.5])
 

@@ -9,20 +9,20 @@ import math
 import numpy as np
 import pytest
 
+from rangemcl.localization.factory import lost_detector, signal_watch
 from rangemcl.localization.lost import (
-    LostDetector,
     Opinion,
     Polish,
-    SignalWatch,
     candidate_particles,
     history_fit,
     second_opinion,
 )
+from rangemcl.localization.settings import RecoverySettings
 from rangemcl.se2 import se2_compose
 
 
 def test_the_watch_needs_bad_updates_in_a_row_against_its_own_level():
-    w = SignalWatch(signal="inliers", updates=3)
+    w = signal_watch(RecoverySettings(signal="inliers", updates=3), floor=0.3)
     for _ in range(20):
         assert not w.update(0.1, 0.9)
     # an actor alongside: the residual doubles, the share dips a little: not bad
@@ -40,7 +40,7 @@ def test_the_watch_needs_bad_updates_in_a_row_against_its_own_level():
 
 
 def test_the_residual_signal_judges_a_new_convergence_by_the_floor():
-    w = SignalWatch(signal="residual", floor=0.3, residual_factor=2.0, updates=1)
+    w = signal_watch(RecoverySettings(signal="residual", factor=2.0, updates=1), floor=0.3)
     assert w.is_bad(0.5)  # no history: 1.5 x floor = 0.45
     assert not w.is_bad(0.4)
     for _ in range(10):
@@ -265,10 +265,11 @@ def test_no_candidate_far_enough_is_no_opinion():
 def _detector(**kw):
     """A detector whose suspicion comes at the second bad update (doubt alone asks no opinion unless
     ``doubt_opinions=True`` is given)."""
-    watch = SignalWatch(signal="inliers", updates=2)
+    settings = {"signal": "inliers", "updates": 2, "probation_updates": 0, "doubt_opinions": False, **kw}
+    det = lost_detector(RecoverySettings(**settings), separation_m=5.0, floor=0.3)
     for _ in range(10):
-        watch.update(0.1, 0.9)
-    return LostDetector(watch, probation_updates=0, **{"doubt_opinions": False, **kw})
+        det.watch.update(0.1, 0.9)
+    return det
 
 
 def test_a_doubtful_update_asks_for_a_second_opinion_without_a_suspicion():
@@ -336,8 +337,8 @@ def test_a_suspicion_is_lost_only_when_one_place_keeps_fitting_better():
 
 
 def test_probation_undoes_a_convergence_when_a_better_place_is_confirmed():
-    watch = SignalWatch(signal="inliers", updates=5)
-    det = LostDetector(watch, probation_updates=3, probation_hits=2)
+    r = RecoverySettings(signal="inliers", updates=5, probation_updates=3, probation_hits=2)
+    det = lost_detector(r, separation_m=5.0, floor=0.3)
     det.start_probation()
     motion = np.array([1.0, 0.0, 0.0])
     place = np.array([10.0, 0.0, 0.0])

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from rangemcl import meshgen
-from rangemcl.localization.refine import ScanRefiner
+from rangemcl.localization.settings import RefineSettings
 from rangemcl.mapping.meshmap import MeshMap
 from rangemcl.mcl import LocalizerSettings, ObservationSettings, build_localizer, scan_refiner
 from rangemcl.rangeimage import RangeImageGeometry
@@ -19,6 +19,12 @@ from rangemcl.se2 import se2_compose, se2_inverse
 from rangemcl.sensors import load_spec
 
 HEIGHT = 1.73
+
+
+def _refiner(caster, **kw):
+    """The refiner of the settings (``rangemcl.localization.factory.scan_refiner``), by default the plain
+    one: every ray takes part (no height floor) and no band of weak directions; ``kw``: settings."""
+    return scan_refiner(caster, RefineSettings(**{"min_hit_height_m": None, "weak_information": None, **kw}))
 
 
 def _world(parts):
@@ -62,7 +68,7 @@ def test_a_known_offset_is_recovered_to_a_centimetre(yard, offset):
     truth = np.array([1.0, -2.0, 0.4])
     d, r = _rays(caster, truth)
     start = truth + np.array([offset[0], offset[1], math.radians(offset[2])])
-    ref = ScanRefiner(caster).refine(d, r, start, HEIGHT)
+    ref = _refiner(caster).refine(d, r, start, HEIGHT)
     assert ref is not None and ref.constrained == 3
     assert math.hypot(*(ref.pose[:2] - truth[:2])) < 0.01
     assert abs(math.degrees(ref.pose[2] - truth[2])) < 0.05
@@ -79,7 +85,7 @@ def test_a_corridor_axis_is_left_alone():
         ]
     )
     d, r = _rays(caster, np.zeros(3))
-    ref = ScanRefiner(caster).refine(d, r, np.array([0.4, 0.3, math.radians(1.0)]), HEIGHT)
+    ref = _refiner(caster).refine(d, r, np.array([0.4, 0.3, math.radians(1.0)]), HEIGHT)
     assert ref is not None and ref.constrained == 2
     assert ref.pose[0] == pytest.approx(0.4, abs=1e-3)  # along the walls: nothing to go by
     assert abs(ref.pose[1]) < 0.01 and abs(math.degrees(ref.pose[2])) < 0.05
@@ -88,7 +94,7 @@ def test_a_corridor_axis_is_left_alone():
 def test_too_few_rays_on_the_map_give_no_refinement(yard):
     caster = yard[0]
     d, r = _rays(caster, np.zeros(3), count=20)
-    assert ScanRefiner(caster, min_inliers=30).refine(d, r, np.zeros(3), HEIGHT) is None
+    assert _refiner(caster, min_inliers=30).refine(d, r, np.zeros(3), HEIGHT) is None
 
 
 def test_the_filter_refuses_a_refinement_outside_its_cloud(yard):
@@ -148,12 +154,12 @@ def test_low_hits_can_be_left_out_so_a_moved_parked_car_does_not_pull():
     with ``min_hit_height_m`` above the box the street's axis is left where it was."""
     map_caster, scan_caster = _street_with_a_low_box(4.0, 0.3)
     d, r = _rays(scan_caster, np.zeros(3), spec="hdl-64e", count=20000)
-    pulled = ScanRefiner(map_caster).refine(d, r, np.zeros(3), HEIGHT, ground_z=0.0)
+    pulled = _refiner(map_caster).refine(d, r, np.zeros(3), HEIGHT, ground_z=0.0)
     assert pulled is not None and pulled.constrained == 3 and pulled.pose[0] < -0.1
-    held = ScanRefiner(map_caster, min_hit_height_m=2.0).refine(d, r, np.zeros(3), HEIGHT, ground_z=0.0)
+    held = _refiner(map_caster, min_hit_height_m=2.0).refine(d, r, np.zeros(3), HEIGHT, ground_z=0.0)
     assert held is not None and held.constrained == 2 and abs(held.pose[0]) < 1e-3
     # a threshold above everything the scan hits (an 8-beam sensor looking down): all hits take part again
-    low = ScanRefiner(map_caster, min_hit_height_m=10.0).refine(d, r, np.zeros(3), HEIGHT, ground_z=0.0)
+    low = _refiner(map_caster, min_hit_height_m=10.0).refine(d, r, np.zeros(3), HEIGHT, ground_z=0.0)
     assert low is not None and np.array_equal(low.pose, pulled.pose)
 
 
@@ -171,7 +177,7 @@ def test_a_few_rays_on_one_low_surface_do_not_move_the_pose_along_the_street():
         d, r, np.zeros(3), HEIGHT, ground_z=0.0
     )
     assert held is not None and held.held == 1 and abs(held.pose[0]) < 1e-3 and abs(held.pose[1]) < 0.01
-    plain = ScanRefiner(map_caster, min_hit_height_m=2.0)
+    plain = _refiner(map_caster, min_hit_height_m=2.0)
     pulled = plain.refine(d, r, np.zeros(3), HEIGHT, ground_z=0.0)
     assert pulled is not None and pulled.constrained == 3 and pulled.pose[0] == pytest.approx(-0.3, abs=0.02)
 
@@ -186,8 +192,8 @@ def test_a_weak_direction_takes_small_steps_only(moved_m):
     d, r = _rays(scan_caster, np.zeros(3), spec="mq-8", count=500)
     start = np.array([0.0, 0.2, 0.0])  # 0.2 m across the street: the walls pull it back
     kw = dict(min_hit_height_m=2.0, min_information=10.0)
-    free = ScanRefiner(map_caster, **kw).refine(d, r, start, HEIGHT, ground_z=0.0)
-    band = ScanRefiner(map_caster, weak_information=25.0, weak_step_m=0.1, **kw)
+    free = _refiner(map_caster, **kw).refine(d, r, start, HEIGHT, ground_z=0.0)
+    band = _refiner(map_caster, weak_information=25.0, weak_step_m=0.1, **kw)
     ref = band.refine(d, r, start, HEIGHT, ground_z=0.0)
     assert free is not None and ref is not None
     assert free.pose[0] == pytest.approx(-moved_m, abs=0.02) and abs(free.pose[1]) < 0.01
