@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from rangemcl import __version__
 from rangemcl.atomic import atomic_write, savez_stable
 from rangemcl.checkpoint import restore_state, save_state
 from rangemcl.config import write_config
@@ -516,6 +517,7 @@ class LocalizationPipeline:
         after = log.converged & (log.particles <= self.settings.particles.converged_count)
         before = ~log.converged
         summary = {
+            "rangemcl_version": __version__,
             "sequence": str(seq.root),
             "map": str(self.map_dir),
             "mode": opt.mode,

@@ -6,7 +6,7 @@ Importing it registers the gymnasium environments ``simbed/LocalizationTrial-v0`
 
 import os
 
-__version__ = "0.1.0"
+from rangemcl import __version__ as __version__  # one version for both packages (one distribution)
 
 # MuJoCo picks its OpenGL backend when it is first imported: headless machines need EGL for pictures.
 if not os.environ.get("DISPLAY"):

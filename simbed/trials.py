@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rangemcl import method_version
 from rangemcl.errors import InputError
 from rangemcl.localization.models import MODEL_NAMES
 from rangemcl.pool import process_pool
@@ -68,7 +69,7 @@ class Trial:
         return (
             f"{self.suite}-{self.drive_key}-s{self.start_frame}-f{self.frames}-p{self.particles}-{self.model}"
             f"-r{self.seed}{'-kidnap' if self.kidnap else ''}{settings_tag(self.settings)}"
-            f"-v{LOCALIZER_REVISION}"
+            f"-v{METHOD_VERSION}"
         )
 
     @property
@@ -76,27 +77,11 @@ class Trial:
         return drive_key(*(getattr(self, k) for k in DRIVE_FIELDS))
 
 
-# in every trial key: the localizer's defaults changed (issue 13: place prior, hypotheses, change-robust
-# observation; revision 3: the second opinion on lost alarms; 4: ... confirmed at two updates; 5: issue
-# 19's scan-to-mesh refinement and online odometry calibration; 6: the refinement leaves out hits in the
-# lowest 2 m; 7: ... except in the first 10 updates after a search's convergence; 8: the prior's fresh
-# particles stop while a hypothesis holds 90 % of the weight; 9: 60 % of the structure rays from points
-# at least 2 m above the ground, over the parked cars; 10: a sensor that sees nothing above the parked
-# cars is matched with its own top beam's place prior, and the second opinion takes a second look around
-# its best places and keeps scoring the last better place; 11: the second opinion over the prior's best
-# 100 places, 16 of them looked at again; 12: where the inlier share saturates, residuals decide, and a better
-# place must explain the last 30 updates' scans as well; 13: ... but not in the probation after a
-# convergence; 14: the search's heaviest hypotheses get a dense local search on every scan, its
-# roughening shrinks to 0.05 m and 0.25 degrees, and the look at the past is taken in the probation
-# again; 15: the second opinion looks around its best places with the search's grids, confirms the
-# last better place before a new one, and its look at the past leaves out the suspicion's scans; 16: the
-# refinement leaves alone a direction with information below 25 instead of 10; 17: ... back to 10, but a
-# direction with information from 10 to 25 moves by steps of at most 0.1 m), so
-# trials of earlier revisions (keys without "-v17")
-# are never taken for today's.
-# (Fresh particles at 0.1 % of the weight and only where the search holds none were measured and not
-# adopted: README; their settings are configs/search_no_cap.yaml.)
-LOCALIZER_REVISION = 17
+# Every trial key ends with the localizer's method version: the package version's major.minor (semantic
+# versioning: a minor release changes what the localizer computes, a patch release does not), so trials run
+# by another version of the method are never taken for today's when a suite folder is continued. What each
+# version changed: CHANGELOG.md.
+METHOD_VERSION = method_version()
 
 DRIVE_FIELDS = ("scene", "sensor", "route", "variant", "actors", "drive_seed", "drive_frames")
 

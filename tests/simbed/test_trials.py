@@ -12,7 +12,7 @@ import pytest
 
 from rangemcl.errors import InputError
 from simbed.trials import (
-    LOCALIZER_REVISION,
+    METHOD_VERSION,
     SUITES,
     SuiteConfig,
     aggregate,
@@ -167,7 +167,7 @@ def test_suite_with_localizer_settings(tiny_map, tmp_path):
     cfg.write_text("observation:\n  ray_sampling: elevation\n  rays: 120\n")
     c = replace(CONFIG, settings=suite_settings(cfg))
     plain, tuned = suite_trials("runtime", True, CONFIG), suite_trials("runtime", True, c)
-    rev = f"-v{LOCALIZER_REVISION}"  # every key ends with the localizer's revision
+    rev = f"-v{METHOD_VERSION}"  # every key ends with the localizer's method version (major.minor)
     assert all(a.key.endswith(rev) and b.key.endswith(rev) for a, b in zip(plain, tuned, strict=True))
     assert all(
         re.fullmatch(re.escape(a.key[: -len(rev)]) + "-c[0-9a-f]{8}" + rev, b.key)
