@@ -14,7 +14,7 @@ from rangemcl.errors import InputError
 _UMASK_LOCK = threading.Lock()
 
 
-def _file_mode() -> int:
+def file_mode() -> int:
     """The mode a plain ``open()`` would give a new file: 0o666 less the process's umask (``mkstemp``
     gives 0o600 whatever the umask, which leaves a map or recording copied to a colleague unreadable)."""
     with _UMASK_LOCK:
@@ -34,7 +34,7 @@ def atomic_write(path: str | os.PathLike, data: bytes | str | Callable[[BinaryIO
     tmp = None
     try:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        os.fchmod(fd, _file_mode())
+        os.fchmod(fd, file_mode())
         with os.fdopen(fd, "wb") as f:
             if callable(data):
                 data(f)

@@ -521,9 +521,10 @@ def settings_cmd(
 def map_info(map_dir: Path = typer.Argument(..., help="A map folder.")) -> None:
     """Print a map's size, triangles, tiles, extent, coarse level and place prior; every tile is read and
     checked, one at a time (a map of format 2 is never held whole)."""
+    from rangemcl.localization.place_prior import describe_prior_file
     from rangemcl.mapping.info import map_info as summarize
 
-    summary = summarize(map_dir)
+    summary = summarize(map_dir, describe_prior=describe_prior_file)
     width = max(len(k) for k in summary)
     for key, value in summary.items():
         typer.echo(f"{key:<{width}}  {value}")
@@ -770,10 +771,10 @@ def localize(
         typer.echo(f"  sensor-to-pose calibration: {s['calib_source']}")
     m = s.get("metrics")
     if m:
-        typer.echo(_metrics_line(m))
+        typer.echo(metrics_line(m))
 
 
-def _metrics_line(m: dict) -> str:
+def metrics_line(m: dict) -> str:
     events = ""
     if "wrong_convergences_count" in m:
         events = (
@@ -831,7 +832,7 @@ def evaluate(
             }
         )
     )
-    typer.echo(_metrics_line(m))
+    typer.echo(metrics_line(m))
 
 
 def main() -> None:

@@ -103,7 +103,7 @@ def _as_pose(value: Any, where: str) -> np.ndarray:
     return T
 
 
-def _read_lines(path: Path, *, drop_partial: bool) -> list[tuple[int, str]]:
+def read_lines(path: Path, *, drop_partial: bool) -> list[tuple[int, str]]:
     """Numbered non-empty lines of a text file (1-based numbers).
 
     Trailing blank lines are ignored; a blank line inside the file is an error. With ``drop_partial`` a
@@ -122,7 +122,7 @@ def _read_lines(path: Path, *, drop_partial: bool) -> list[tuple[int, str]]:
     return out
 
 
-def _parse_numbers(path: Path, n: int, line: str, count: int) -> list[float]:
+def parse_numbers(path: Path, n: int, line: str, count: int) -> list[float]:
     parts = line.split()
     if len(parts) != count:
         raise InputError(f"{path}: line {n} has {len(parts)} numbers, expected {count}")
@@ -141,10 +141,10 @@ def _is_float(text: str) -> bool:
     return True
 
 
-def _poses_from_lines(path: Path, lines: list[tuple[int, str]]) -> np.ndarray:
+def poses_from_lines(path: Path, lines: list[tuple[int, str]]) -> np.ndarray:
     poses = np.tile(np.eye(4), (len(lines), 1, 1))
     for k, (n, line) in enumerate(lines):
-        values = _parse_numbers(path, n, line, 12)
+        values = parse_numbers(path, n, line, 12)
         if not all(math.isfinite(v) for v in values):
             raise InputError(f"{path}: line {n} has NaN or inf")
         poses[k, :3] = np.reshape(values, (3, 4))
@@ -164,7 +164,7 @@ def _pose_line(T: np.ndarray) -> str:
 def read_poses_txt(path: str | os.PathLike[str]) -> np.ndarray:
     """Read a KITTI pose file: ``(N, 4, 4)`` float64, validated (12 finite numbers a line, rotations)."""
     path = Path(path)
-    return _poses_from_lines(path, _read_lines(path, drop_partial=False))
+    return poses_from_lines(path, read_lines(path, drop_partial=False))
 
 
 def write_poses_txt(path: str | os.PathLike[str], poses: Any) -> Path:
@@ -208,7 +208,7 @@ def poses_to_tum(poses: Any, times: Any) -> list[str]:
 # --- meta.yaml -------------------------------------------------------------------------------------------
 
 
-def _read_meta(path: Path) -> dict[str, Any]:
+def read_meta(path: Path) -> dict[str, Any]:
     if not path.exists():
         return {}
     data = parse_yaml(read_text(path), str(path))
@@ -340,11 +340,11 @@ def _scan_files(root: Path) -> list[Path]:
     return paths
 
 
-def _read_calib(path: Path) -> np.ndarray:
+def read_calib(path: Path) -> np.ndarray:
     if not path.exists():
         return np.eye(4)
     found: list[tuple[int, str]] = []
-    for n, line in _read_lines(path, drop_partial=False):
+    for n, line in read_lines(path, drop_partial=False):
         key, sep, rest = line.partition(":")
         if sep and key.strip() in ("Tr", "Tr_velo_to_cam"):
             found.append((n, rest))
@@ -356,11 +356,11 @@ def _read_calib(path: Path) -> np.ndarray:
     parts = rest.split()
     if len(parts) != 12:
         raise InputError(f"{path}: 'Tr:' on line {n} has {len(parts)} numbers, expected 12")
-    values = _parse_numbers(path, n, rest, 12)
+    values = parse_numbers(path, n, rest, 12)
     return _as_pose(np.reshape(values, (3, 4)), f"{path}: 'Tr:' on line {n}")
 
 
-def _kitti_poses_file(root: Path) -> Path | None:
+def kitti_poses_file(root: Path) -> Path | None:
     """``root/poses.txt``, else KITTI's ``…/poses/NN.txt`` for ``…/sequences/NN``, else None."""
     own = root / "poses.txt"
     if own.exists():
@@ -386,13 +386,13 @@ def load_sequence(path: str | os.PathLike[str], *, require_poses: bool = False) 
         raise InputError(f"{root}: no such sequence folder")
     if not root.is_dir():
         raise InputError(f"{root}: not a folder")
-    meta = _read_meta(root / "meta.yaml")
+    meta = read_meta(root / "meta.yaml")
     incomplete = meta.get("complete") is False
     scan_paths = _scan_files(root)
-    calib_Tr = _read_calib(root / "calib.txt")
+    calib_Tr = read_calib(root / "calib.txt")
 
     sources: dict[str, Path] = {}
-    poses_file = _kitti_poses_file(root)
+    poses_file = kitti_poses_file(root)
     if poses_file is not None:
         sources["poses"] = poses_file
     elif require_poses:
@@ -401,7 +401,7 @@ def load_sequence(path: str | os.PathLike[str], *, require_poses: bool = False) 
         p = root / f"{key}.txt"
         if p.exists():
             sources[key] = p
-    lines = {key: _read_lines(p, drop_partial=incomplete) for key, p in sources.items()}
+    lines = {key: read_lines(p, drop_partial=incomplete) for key, p in sources.items()}
 
     counts = {key: len(v) for key, v in lines.items()}
     n = min([len(scan_paths), *counts.values()])
@@ -423,14 +423,14 @@ def load_sequence(path: str | os.PathLike[str], *, require_poses: bool = False) 
         seq.calib_source = "identity (no calib.txt)"
     identity = np.array_equal(calib_Tr, np.eye(4))
     if "poses" in lines:
-        P = _poses_from_lines(sources["poses"], lines["poses"])
+        P = poses_from_lines(sources["poses"], lines["poses"])
         seq.poses = P if identity else P @ calib_Tr
     if "odometry" in lines:
-        O = _poses_from_lines(sources["odometry"], lines["odometry"])
+        O = poses_from_lines(sources["odometry"], lines["odometry"])
         seq.odometry = O if identity else O @ calib_Tr
     if "times" in lines:
         p = sources["times"]
-        t = np.array([_parse_numbers(p, n, line, 1)[0] for n, line in lines["times"]], dtype=np.float64)
+        t = np.array([parse_numbers(p, n, line, 1)[0] for n, line in lines["times"]], dtype=np.float64)
         for k, (n, _) in enumerate(lines["times"]):
             if not math.isfinite(t[k]):
                 raise InputError(f"{p}: line {n} is not finite")
@@ -439,7 +439,7 @@ def load_sequence(path: str | os.PathLike[str], *, require_poses: bool = False) 
         seq.times = t
     if "imu" in lines:
         p = sources["imu"]
-        rp = np.array([_parse_numbers(p, n, line, 2) for n, line in lines["imu"]], dtype=np.float64)
+        rp = np.array([parse_numbers(p, n, line, 2) for n, line in lines["imu"]], dtype=np.float64)
         rp = rp.reshape(-1, 2)
         bad = np.flatnonzero(~np.all(np.isfinite(rp), axis=1))
         if len(bad):

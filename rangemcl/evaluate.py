@@ -257,7 +257,7 @@ def _evaluate_partial(results_dir: Path, gt_path, *, check_every: int, success_m
     and flushed frame by frame, has every finished frame's planar estimate and events. The sensor-to-pose
     calibration is read from the ``calib.txt`` beside ``gt_path`` (identity without one). The metrics
     say ``"partial": true``."""
-    from rangemcl.dataset import _read_calib
+    from rangemcl.dataset import read_calib
 
     path = results_dir / "frames.csv"
     try:
@@ -288,7 +288,7 @@ def _evaluate_partial(results_dir: Path, gt_path, *, check_every: int, success_m
     gt = read_poses_txt(gt_path)
     if len(gt) <= frames[-1]:
         raise InputError(f"{gt_path}: has {len(gt)} poses but the run reached frame {frames[-1]}")
-    Tr = _read_calib(Path(gt_path).parent / "calib.txt")
+    Tr = read_calib(Path(gt_path).parent / "calib.txt")
     truth = xyyaw_of(gt[frames] @ Tr)
     converged = data[:, 4] > 0.5
     onsets = [k for k in range(len(frames)) if converged[k] and (k == 0 or not converged[k - 1])]

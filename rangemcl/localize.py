@@ -139,7 +139,7 @@ def check_map_frame(seq: Sequence, mesh_map: MeshMap, margin_m: float = 50.0) ->
         )
 
 
-def _frame_period(seq: Sequence) -> float | None:
+def frame_period(seq: Sequence) -> float | None:
     if seq.times is not None and len(seq.times) > 1:
         d = np.diff(seq.times)
         d = d[d > 0]
@@ -148,7 +148,7 @@ def _frame_period(seq: Sequence) -> float | None:
     return None
 
 
-def _sensor_height(seq: Sequence, mesh_map: MeshMap, settings: LocalizerSettings) -> tuple[float, str]:
+def resolve_sensor_height(seq: Sequence, mesh_map: MeshMap, settings: LocalizerSettings) -> tuple[float, str]:
     if settings.sensor_height_m is not None:
         return float(settings.sensor_height_m), "settings"
     sensor = seq.meta.get("sensor") if isinstance(seq.meta, dict) else None
@@ -287,7 +287,7 @@ class LocalizationPipeline:
         if not 0 <= self.first < len(seq):
             raise InputError(f"first frame {self.first} out of range (the sequence has {len(seq)} frames)")
         self.last = len(seq) if opt.frames is None else min(len(seq), self.first + int(opt.frames))
-        self.height, self.height_source = _sensor_height(seq, self.map, settings)
+        self.height, self.height_source = resolve_sensor_height(seq, self.map, settings)
         self.truth = xyyaw_of(seq.poses) if seq.poses is not None else None
         if self.opt.mode == "tracking":
             self.events["converged_frame"] = self.first
@@ -400,7 +400,7 @@ class LocalizationPipeline:
 
     def filter_frames(self) -> None:
         seq, loc, first, last, ev, log = self.seq, self.loc, self.first, self.last, self.events, self.log
-        period = self.period = _frame_period(seq)
+        period = self.period = frame_period(seq)
         snap_at = set(np.linspace(first, last - 1, 4).astype(int).tolist())
         k0 = self.resume_from
         csv = self._open_frames_csv(k0)

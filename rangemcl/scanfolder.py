@@ -132,14 +132,14 @@ def read_scan_file(path: Path) -> pc2.Cloud:
 
 
 def _times(root: Path, files: list[Path], meta: dict) -> np.ndarray:
-    from rangemcl.dataset import _parse_numbers, _read_lines
+    from rangemcl.dataset import parse_numbers, read_lines
 
     p = root / "times.txt"
     if p.is_file():
-        lines = _read_lines(p, drop_partial=False)
+        lines = read_lines(p, drop_partial=False)
         if len(lines) != len(files):
             raise InputError(f"{p}: {len(lines)} lines for {len(files)} scans")
-        t = np.array([_parse_numbers(p, n, line, 1)[0] for n, line in lines])
+        t = np.array([parse_numbers(p, n, line, 1)[0] for n, line in lines])
         source = "times.txt"
     else:
         try:
@@ -164,30 +164,30 @@ def load_scan_folder(
     path: str | os.PathLike, *, poses_file: str | None = None, require_poses: bool = False
 ) -> ScanFolderSequence:
     """Open a folder of ``.pcd``/``.ply`` scans (see the module's docstring)."""
-    from rangemcl.dataset import _kitti_poses_file, _poses_from_lines, _read_lines, _read_meta
+    from rangemcl.dataset import kitti_poses_file, poses_from_lines, read_lines, read_meta
 
     root = Path(path)
     files = scan_files(root)
     if not files:
         raise InputError(f"{root}: no .pcd or .ply scans")
-    meta = _read_meta(root / "meta.yaml") if (root / "meta.yaml").is_file() else {}
+    meta = read_meta(root / "meta.yaml") if (root / "meta.yaml").is_file() else {}
     seq = ScanFolderSequence(root=root, scan_paths=files, meta=meta)
     seq.times = _times(root, files, seq.meta)
     if poses_file is not None:
         from rangemcl.ros.bag import poses_at_scans
 
         seq.poses = poses_at_scans(poses_file, seq.times)
-    elif (kitti := _kitti_poses_file(root)) is not None:
-        lines = _read_lines(kitti, drop_partial=False)
+    elif (kitti := kitti_poses_file(root)) is not None:
+        lines = read_lines(kitti, drop_partial=False)
         if len(lines) != len(files):
             raise InputError(f"{kitti}: {len(lines)} lines for {len(files)} scans")
-        seq.poses = _poses_from_lines(kitti, lines)
+        seq.poses = poses_from_lines(kitti, lines)
     if require_poses and seq.poses is None:
         raise InputError(f"{root}: no poses (put poses.txt in the folder or give --poses FILE)")
     odo = root / "odometry.txt"
     if odo.is_file():
-        lines = _read_lines(odo, drop_partial=False)
+        lines = read_lines(odo, drop_partial=False)
         if len(lines) != len(files):
             raise InputError(f"{odo}: {len(lines)} lines for {len(files)} scans")
-        seq.odometry = _poses_from_lines(odo, lines)
+        seq.odometry = poses_from_lines(odo, lines)
     return seq

@@ -53,7 +53,7 @@ _SCALAR_KEYS = (
 
 
 def _default_mount() -> np.ndarray:
-    return _transform_from_xyz_rpy(DEFAULT_MOUNT_XYZ_M, (0.0, 0.0, 0.0))
+    return transform_from_xyz_rpy(DEFAULT_MOUNT_XYZ_M, (0.0, 0.0, 0.0))
 
 
 @dataclass(frozen=True, eq=False, kw_only=True)
@@ -223,7 +223,7 @@ class LidarSpec:
         data = {
             key: value.tolist() if isinstance(value, np.ndarray) else value for key, value in data.items()
         }
-        xyz_m, rpy_deg = _xyz_rpy_from_transform(self.T_base_sensor)
+        xyz_m, rpy_deg = xyz_rpy_from_transform(self.T_base_sensor)
         data["mount"] = {"xyz_m": xyz_m, "rpy_deg": rpy_deg}
         return data
 
@@ -238,7 +238,7 @@ class LidarSpec:
 # --- mount <-> transform -----------------------------------------------------------------------------
 
 
-def _transform_from_xyz_rpy(xyz_m: Any, rpy_deg: Any) -> np.ndarray:
+def transform_from_xyz_rpy(xyz_m: Any, rpy_deg: Any) -> np.ndarray:
     """4x4 transform with translation ``xyz_m`` and rotation ``Rz(yaw) @ Ry(pitch) @ Rx(roll)``."""
     cr, cp, cy = np.cos(np.radians(rpy_deg))
     sr, sp, sy = np.sin(np.radians(rpy_deg))
@@ -252,8 +252,8 @@ def _transform_from_xyz_rpy(xyz_m: Any, rpy_deg: Any) -> np.ndarray:
     return T
 
 
-def _xyz_rpy_from_transform(T: np.ndarray) -> tuple[list[float], list[float]]:
-    """Inverse of :func:`_transform_from_xyz_rpy`: (xyz_m, rpy_deg) as lists of floats."""
+def xyz_rpy_from_transform(T: np.ndarray) -> tuple[list[float], list[float]]:
+    """Inverse of :func:`transform_from_xyz_rpy`: (xyz_m, rpy_deg) as lists of floats."""
     R = T[:3, :3]
     cos_pitch = math.hypot(R[0, 0], R[1, 0])
     pitch = math.atan2(-R[2, 0], cos_pitch)
@@ -327,7 +327,7 @@ def _mount(value: Any, key: str, where: str) -> np.ndarray:
     _check_keys(value, _MOUNT_KEYS, where, inside=f" in {key!r}")
     xyz_m = _numbers(value.get("xyz_m", list(DEFAULT_MOUNT_XYZ_M)), f"{key}.xyz_m", where, length=3)
     rpy_deg = _numbers(value.get("rpy_deg", [0.0, 0.0, 0.0]), f"{key}.rpy_deg", where, length=3)
-    return _transform_from_xyz_rpy(xyz_m, rpy_deg)
+    return transform_from_xyz_rpy(xyz_m, rpy_deg)
 
 
 _PARSERS = {"str": _text, "float": _number, "int": _integer, "list": _numbers, "mount": _mount}

@@ -209,7 +209,7 @@ def demo(
     """Map town_small, record a test drive with other parked cars and moving actors, localize globally in
     the map, and print the metrics (plots in OUT/results). Run again with the same options, an
     interrupted demo continues where it stopped."""
-    from rangemcl.cli import _metrics_line
+    from rangemcl.cli import metrics_line
     from simbed.demo import DemoSettings, run_demo
 
     s = run_demo(
@@ -224,7 +224,7 @@ def demo(
         f"demo done in {s['demo_seconds']['total']:.0f} s: converged at frame {s['converged_frame']}, "
         f"{s['hz_after_convergence'] or 0:.1f} Hz after convergence"
     )
-    typer.echo(_metrics_line(m))
+    typer.echo(metrics_line(m))
     typer.echo(f"plots: {out / 'results'}/trajectory.png, error.png, particles.png")
 
 

@@ -37,7 +37,7 @@ import mujoco
 import numpy as np
 
 from rangemcl import meshgen
-from rangemcl.atomic import _file_mode
+from rangemcl.atomic import file_mode
 from rangemcl.errors import InputError
 
 Mesh = tuple[np.ndarray, np.ndarray]
@@ -320,7 +320,7 @@ def write_ply(path, vertices, faces) -> Path:
             raise InputError(f"cannot write {path}")
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
-        os.chmod(tmp, _file_mode())
+        os.chmod(tmp, file_mode())
         os.replace(tmp, path)
         tmp = None
     except OSError as err:

@@ -92,9 +92,9 @@ def record(
     if fmt not in ("kitti", *BAG_FORMATS):
         raise InputError(f"format {fmt!r}: expected kitti, {', '.join(BAG_FORMATS)}")
     if fmt != "kitti":
-        from rangemcl.ros.bag import _rosbags
+        from rangemcl.ros.bag import require_rosbags
 
-        _rosbags(f"--format {fmt}")
+        require_rosbags(f"--format {fmt}")
         if (fmt == "rosbag1") != (out.suffix == ".bag"):
             raise InputError(
                 f"{out}: a ROS 1 bag is a file ending in .bag"

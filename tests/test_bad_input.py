@@ -1131,7 +1131,7 @@ def test_a_drive_without_valid_points_is_odometry_alone_not_a_success(base, tmp_
     the summary counts the NaN points dropped, and a run whose filter never had a scan to weigh is not a
     success (the reason in metrics.json and in the metrics line), also when evaluated again; a drive with
     some scans keeps the paper's success."""
-    from rangemcl.cli import _metrics_line
+    from rangemcl.cli import metrics_line
 
     runs = {}
     for name, nan_frames in (("some", set(range(3, 17))), ("none", set(range(20)))):
@@ -1150,15 +1150,15 @@ def test_a_drive_without_valid_points_is_odometry_alone_not_a_success(base, tmp_
         runs[name] = d, metrics, summary
     _d, metrics, summary = runs["some"]
     assert metrics["success"] and metrics["failure_reason"] is None and metrics["scan_updates"] > 0
-    assert "success" in _metrics_line(summary["metrics"]) and "6 of 20 frames localized from scans" in (
-        _metrics_line(summary["metrics"])
+    assert "success" in metrics_line(summary["metrics"]) and "6 of 20 frames localized from scans" in (
+        metrics_line(summary["metrics"])
     )
     d, metrics, summary = runs["none"]
     assert metrics["location_rmse_m"] < 0.01  # odometry alone, from the true start ...
     assert not metrics["success"] and metrics["scan_updates"] == 0  # ... is not a success
     assert "no frame had a scan with a valid point" in metrics["failure_reason"]
     assert not summary["metrics"]["success"]
-    line = _metrics_line(summary["metrics"])
+    line = metrics_line(summary["metrics"])
     assert "FAILURE (no frame had a scan with a valid point" in line and "0 of 20 frames" in line
     code, err = run_cli("rangemcl", ["evaluate", str(d / "o"), "--gt", str(d / "seq" / "poses.txt")])
     assert code in (0, None), err

@@ -33,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_map_memory import run_once
 
-from rangemcl.mapping.meshmap import GroundGrid, _read_ground_and_drive, read_map_yaml, write_map_files
+from rangemcl.mapping.meshmap import GroundGrid, read_ground_and_drive, read_map_yaml, write_map_files
 from rangemcl.mapping.store import TileStore, write_index, write_tile
 
 
@@ -98,7 +98,7 @@ def build_dense(src_dir: Path, out: Path, copies: int) -> dict:
         if n % 25 == 0:
             print(f"  tile {n + 1}/{len(targets)}, {time.perf_counter() - t0:.0f} s", file=sys.stderr)
     write_index(tmp, size, origin, entries)
-    ground, drive = _read_ground_and_drive(src_dir)
+    ground, drive = read_ground_and_drive(src_dir)
     step = np.rint(span * size / ground.cell_m).astype(int)
     ny, nx = ground.heights.shape
     heights = np.full((ny + (copies - 1) * step[1], nx + (copies - 1) * step[0]), np.nan, np.float32)

@@ -79,14 +79,14 @@ def main() -> None:
 
     from rangemcl.dataset import load_sequence
     from rangemcl.evaluate import xyyaw_of
-    from rangemcl.localize import _frame_period
+    from rangemcl.localize import frame_period
     from rangemcl.mapping.meshmap import MeshMap
     from rangemcl.mcl import LocalizerSettings, build_localizer, prepare_rays, se2_between
 
     seq = load_sequence(args.seq)
     mesh_map = MeshMap.load(args.map)
     odo, truth = xyyaw_of(seq.odometry), xyyaw_of(seq.poses)
-    period = _frame_period(seq)
+    period = frame_period(seq)
     settings = LocalizerSettings()
     o = settings.observation
     cap = np.inf if o.cap_m is None else o.cap_m

@@ -45,7 +45,7 @@ def run() -> None:
     from rangemcl.dataset import load_sequence
     from rangemcl.errors import InputError
     from rangemcl.evaluate import xyyaw_of
-    from rangemcl.localize import _sensor_height, odometry_xyyaw
+    from rangemcl.localize import odometry_xyyaw, resolve_sensor_height
     from rangemcl.mapping.view import open_map
     from rangemcl.mcl import LocalizerSettings, build_localizer
     from rangemcl.se2 import se2_between
@@ -55,7 +55,7 @@ def run() -> None:
         raise InputError(f"{args.seq}: the drive has no poses.txt")
     mesh_map, caster = open_map(args.map, None)
     settings = LocalizerSettings()
-    height, _ = _sensor_height(seq, mesh_map, settings)
+    height, _ = resolve_sensor_height(seq, mesh_map, settings)
     loc = build_localizer(mesh_map, settings, seed=args.seed, sensor_height_m=height, caster=caster)
     rng = np.random.default_rng(args.seed)
     truth = xyyaw_of(seq.poses @ seq.calib_Tr)

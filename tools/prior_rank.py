@@ -69,7 +69,7 @@ def run() -> None:
         scan_profile,
         sequence_costs,
     )
-    from rangemcl.localize import _sensor_height, odometry_xyyaw
+    from rangemcl.localize import odometry_xyyaw, resolve_sensor_height
     from rangemcl.mapping.view import open_map
     from rangemcl.mcl import LocalizerSettings, build_localizer
     from rangemcl.se2 import rotation_roll_pitch, se2_between
@@ -80,7 +80,7 @@ def run() -> None:
         raise InputError(f"{args.seq}: the drive has no poses.txt")
     settings = LocalizerSettings()
     settings.init.beam_prior = args.beam == "auto"
-    height, _ = _sensor_height(seq, mesh_map, settings)
+    height, _ = resolve_sensor_height(seq, mesh_map, settings)
     loc = build_localizer(mesh_map, settings, seed=0, sensor_height_m=height, caster=caster)
     t0 = time.perf_counter()
 

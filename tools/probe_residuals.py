@@ -42,7 +42,7 @@ def main() -> None:
     from rangemcl.dataset import load_sequence
     from rangemcl.errors import InputError
     from rangemcl.evaluate import xyyaw_of
-    from rangemcl.localize import _frame_period, _sensor_height, odometry_xyyaw
+    from rangemcl.localize import frame_period, odometry_xyyaw, resolve_sensor_height
     from rangemcl.mapping.meshmap import MeshMap
     from rangemcl.mcl import LocalizerSettings, build_localizer, prepare_rays, se2_between
 
@@ -51,11 +51,11 @@ def main() -> None:
     settings.observation.model = "range"
     o = settings.observation
     mesh_map = MeshMap.load(a.map)
-    height, _ = _sensor_height(seq, mesh_map, settings)
+    height, _ = resolve_sensor_height(seq, mesh_map, settings)
     loc = build_localizer(mesh_map, settings, seed=a.seed, threads=a.threads, sensor_height_m=height)
     truths = xyyaw_of(seq.poses)
     odo, _ = odometry_xyyaw(seq, False)
-    period = _frame_period(seq)
+    period = frame_period(seq)
     rng = np.random.default_rng(a.seed)
     frames = [int(f) for f in a.frames.split(",") if f.strip()]
     print(

@@ -48,7 +48,7 @@ def run() -> None:
     from rangemcl.dataset import load_sequence
     from rangemcl.errors import InputError
     from rangemcl.evaluate import xyyaw_of
-    from rangemcl.localize import _frame_period, _sensor_height, odometry_xyyaw
+    from rangemcl.localize import frame_period, odometry_xyyaw, resolve_sensor_height
     from rangemcl.mapping.view import open_map
     from rangemcl.mcl import LocalizerSettings, build_localizer
     from rangemcl.se2 import se2_between, wrap_angle
@@ -60,7 +60,7 @@ def run() -> None:
         raise InputError(f"{args.seq}: first frame {args.first} out of range ({len(seq)} frames)")
     settings = load_config(LocalizerSettings, args.config)
     mesh_map, caster = open_map(args.map, settings.map_memory_mb)
-    height, _ = _sensor_height(seq, mesh_map, settings)
+    height, _ = resolve_sensor_height(seq, mesh_map, settings)
     loc = build_localizer(
         mesh_map, settings, rng=np.random.default_rng(args.seed), sensor_height_m=height, caster=caster
     )
@@ -68,7 +68,7 @@ def run() -> None:
     probe_rng = np.random.default_rng(args.seed + 1_000_003)  # the trace's own rays
     truth = xyyaw_of(seq.poses)  # as rangemcl localize scores its estimates
     odo, _source = odometry_xyyaw(seq, False)
-    period = _frame_period(seq)
+    period = frame_period(seq)
     last = min(len(seq), args.first + args.frames)
     rows = []
     converged_frame = None

@@ -636,3 +636,21 @@ def sequence_costs(
         c = np.where((idx < K) & (dyaw <= tol), cost[idx], worst)
         total = total + c.min(axis=1)
     return total / (1 + len(past))
+
+
+def describe_prior_file(map_dir: Path) -> str:
+    """One line about the place prior stored in ``map_dir`` (``rangemcl map-info``): cells, size, render
+    time; a damaged file is an :class:`InputError`."""
+    path = Path(map_dir) / PRIOR_FILE
+    prior = PlacePrior.load(path)
+    if prior is None:
+        return "none (rangemcl place-prior renders one)" if not path.is_file() else "of an older version"
+    with np.load(path, allow_pickle=False) as z:
+        key = str(json.loads(str(z["meta"])).get("key", ""))
+    partial = ", rendered with tiles held coarse (a budget)" if key.endswith(PARTIAL) else ""
+    seconds = recorded_build_s(path)
+    took = "" if seconds is None else f", rendered in {seconds:.1f} s"
+    return (
+        f"{len(prior.xy)} cells of {prior.params.cell_m:g} m, {path.stat().st_size / 1e6:.1f} MB"
+        f"{took}{partial}"
+    )

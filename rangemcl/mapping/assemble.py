@@ -30,11 +30,11 @@ from rangemcl.errors import InputError
 from rangemcl.mapping.coarse import write_with_coarse
 from rangemcl.mapping.meshmap import (
     GroundGrid,
-    _tile_ij,
-    _tile_keys,
     face_tile_ij,
     fill_cell_medians,
     ground_grid_layout,
+    tile_ij,
+    tile_keys,
     write_map_files,
 )
 from rangemcl.mapping.store import write_index
@@ -106,7 +106,7 @@ def assemble_map(
     for n, path in enumerate(used):
         v, f, g = _load_tile(path)
         ij = face_tile_ij(v, f, origin, tile_size_m)
-        keys = _tile_keys(ij[:, 0], ij[:, 1])
+        keys = tile_keys(ij[:, 0], ij[:, 1])
         for key in np.unique(keys):
             fk = f[keys == key]
             verts, inverse = np.unique(fk, return_inverse=True)
@@ -118,7 +118,7 @@ def assemble_map(
         pg = v[g]
         if len(pg):
             cell = np.clip(np.floor((pg[:, :2] - g_origin) / g_cell).astype(np.int64), 0, [gnx - 1, gny - 1])
-            owner = _tile_keys(*np.floor((g_origin + cell * g_cell - origin) / tile_size_m).T)
+            owner = tile_keys(*np.floor((g_origin + cell * g_cell - origin) / tile_size_m).T)
             for key in np.unique(owner):
                 part = spool / f"ground_{n}_{key}.npy"  # tile n's ground vertices in key's cells
                 np.save(part, pg[owner == key])
@@ -143,7 +143,7 @@ def assemble_map(
                 gs.append(z["is_ground"])
             offset += len(vs[-1])
             part.unlink()
-        ij = _tile_ij(np.array([key]))[0]
+        ij = tile_ij(np.array([key]))[0]
         entries.append(
             write_with_coarse(
                 out_dir, ij, np.concatenate(vs), np.concatenate(fs), np.concatenate(gs), coarse_ratio

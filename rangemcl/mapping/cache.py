@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from rangemcl.errors import InputError
-from rangemcl.mapping.heap import trim_freed_memory
+from rangemcl.heap import trim_freed_memory
 from rangemcl.mapping.store import TileEntry, TileStore
 
 
@@ -79,7 +79,7 @@ def caster_tiles(caster, bytes_per_triangle: float = 62.0, bytes_per_vertex: flo
     by ``prepare`` (the loader thread), the mesh enters the scene at ``install`` and leaves it at
     ``release``; a tile's size is what the process's resident memory grows by when it is loaded: about 62
     bytes a triangle (Warp's BVH with 8 triangles a leaf, the float32 vertices and the indices) and 12 a
-    vertex, with the loader giving its temporaries back after each tile (:mod:`rangemcl.mapping.heap`;
+    vertex, with the loader giving its temporaries back after each tile (:mod:`rangemcl.heap`;
     ``town_large``'s 60 tiles: 454 MB resident for 457 MB counted, ``docs/design/issue17_notes.md``)."""
     return TileKind(
         size_of=lambda e: int(bytes_per_triangle * e.triangles + bytes_per_vertex * e.vertices),

@@ -8,7 +8,6 @@ loaded whole, as before (:func:`rangemcl.mapping.meshmap.map_summary`).
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 from typing import Any
@@ -17,16 +16,16 @@ import numpy as np
 
 from rangemcl.mapping.meshmap import (
     MAP_FILES,
-    _read_ground_and_drive,
     map_summary,
     open_checked_store,
+    read_ground_and_drive,
     read_map_yaml,
 )
 
 _META_KEYS = ("frame", "sensor_height_m", "created_by", "source_sequence", "source_mesh", "scene", "sensor")
 
 
-def map_info(map_dir) -> dict[str, Any]:
+def map_info(map_dir, *, describe_prior=None) -> dict[str, Any]:
     """Plain figures about the map in ``map_dir`` (keys in print order); problems are InputErrors naming
     the file."""
     from rangemcl.mapping.meshmap import MeshMap
@@ -38,7 +37,7 @@ def map_info(map_dir) -> dict[str, Any]:
     t0 = time.perf_counter()
     store = open_checked_store(map_dir, doc["counts"])
     open_ms = (time.perf_counter() - t0) * 1e3
-    ground, drive = _read_ground_and_drive(map_dir, doc)
+    ground, drive = read_ground_and_drive(map_dir, doc)
     per_tile = np.array([e.triangles for e in store.entries])
     ground_vertices = ground_faces = 0
     for k in range(len(store.entries)):  # every tile checked, one at a time
@@ -79,28 +78,11 @@ def map_info(map_dir) -> dict[str, Any]:
         + sum(p.stat().st_size for p in files if p.is_file())
     )
     out["index_open_ms"] = round(open_ms, 1)
-    out["place_prior"] = _prior_line(map_dir)
+    if describe_prior is not None:  # the localizer's reading of the map's place prior (the CLI gives it)
+        out["place_prior"] = describe_prior(map_dir)
     out["format_version"] = version
     meta = doc.get("meta") or {}
     for key in _META_KEYS:
         if meta.get(key) is not None:
             out[key] = meta[key]
     return out
-
-
-def _prior_line(map_dir: Path) -> str:
-    from rangemcl.localization.place_prior import PARTIAL, PRIOR_FILE, PlacePrior, recorded_build_s
-
-    path = map_dir / PRIOR_FILE
-    prior = PlacePrior.load(path)
-    if prior is None:
-        return "none (rangemcl place-prior renders one)" if not path.is_file() else "of an older version"
-    with np.load(path, allow_pickle=False) as z:
-        key = str(json.loads(str(z["meta"])).get("key", ""))
-    partial = ", rendered with tiles held coarse (a budget)" if key.endswith(PARTIAL) else ""
-    seconds = recorded_build_s(path)
-    took = "" if seconds is None else f", rendered in {seconds:.1f} s"
-    return (
-        f"{len(prior.xy)} cells of {prior.params.cell_m:g} m, {path.stat().st_size / 1e6:.1f} MB"
-        f"{took}{partial}"
-    )

@@ -192,7 +192,7 @@ def label_ground_vertices(
     used = np.zeros(nv, bool)
     used[f.reshape(-1)] = True
     ij = np.floor(v[:, :2] / cell_m)
-    _, cell = np.unique(_tile_keys(ij[:, 0], ij[:, 1]), return_inverse=True)
+    _, cell = np.unique(tile_keys(ij[:, 0], ij[:, 1]), return_inverse=True)
     lowest = np.full(cell.max() + 1, np.inf)
     np.minimum.at(lowest, cell[used], v[used, 2])
     return flat & used & (v[:, 2] <= lowest[cell] + layer_m)
@@ -234,7 +234,7 @@ class MeshMap:
         # faces grouped by tile: faces of tile k are _face_order[_tile_start[k]:_tile_start[k + 1]]
         self._face_order = np.argsort(self.face_tile, kind="stable")
         self._tile_start = np.searchsorted(self.face_tile[self._face_order], np.arange(len(self.tiles) + 1))
-        keys = _tile_keys(self.tiles[:, 0], self.tiles[:, 1])
+        keys = tile_keys(self.tiles[:, 0], self.tiles[:, 1])
         self._key_order = np.argsort(keys)
         self._keys_sorted = keys[self._key_order]
 
@@ -269,8 +269,8 @@ class MeshMap:
         tile_size_m = float(tile_size_m)
         origin = np.floor(v[:, :2].min(axis=0) / tile_size_m) * tile_size_m
         ij = face_tile_ij(v, f, origin, tile_size_m)
-        keys, face_tile = np.unique(_tile_keys(ij[:, 0], ij[:, 1]), return_inverse=True)
-        tiles = _tile_ij(keys)  # sorted by (i, j), as the keys are
+        keys, face_tile = np.unique(tile_keys(ij[:, 0], ij[:, 1]), return_inverse=True)
+        tiles = tile_ij(keys)  # sorted by (i, j), as the keys are
         return cls(
             vertices=v,
             faces=f,
@@ -300,7 +300,7 @@ class MeshMap:
         ok = np.isfinite(x) & np.isfinite(y)
         i = np.floor((np.where(ok, x, 0.0) - self.tile_origin_xy[0]) / self.tile_size_m)
         j = np.floor((np.where(ok, y, 0.0) - self.tile_origin_xy[1]) / self.tile_size_m)
-        keys = _tile_keys(i, j)
+        keys = tile_keys(i, j)
         pos = np.clip(np.searchsorted(self._keys_sorted, keys), 0, max(len(self._keys_sorted) - 1, 0))
         found = ok & (self._keys_sorted[pos] == keys) if len(self._keys_sorted) else np.zeros_like(ok)
         return np.where(found, self._key_order[pos], -1).astype(np.int64)
@@ -379,7 +379,7 @@ class MeshMap:
             return cls._load_v1(map_dir, counts, meta)
         store = open_checked_store(map_dir, counts)
         v, f, g, face_tile = store.read_all()
-        ground, drive = _read_ground_and_drive(map_dir, doc)
+        ground, drive = read_ground_and_drive(map_dir, doc)
         return cls(
             vertices=v,
             faces=f,
@@ -435,7 +435,7 @@ class MeshMap:
         if not _tiling_matches(t["tiles"], face_tile, v, f, origin, tile_size):
             raise InputError(f"{tpath}: the tiling does not match the faces' centroids in mesh.ply")
 
-        ground, drive = _read_ground_and_drive(map_dir)
+        ground, drive = read_ground_and_drive(map_dir)
         return cls(
             vertices=v,
             faces=f,
@@ -505,7 +505,7 @@ def open_checked_store(map_dir: Path, counts: dict):
     return store
 
 
-def _read_ground_and_drive(map_dir: Path, doc: dict | None = None) -> tuple[GroundGrid, np.ndarray | None]:
+def read_ground_and_drive(map_dir: Path, doc: dict | None = None) -> tuple[GroundGrid, np.ndarray | None]:
     """The ground grid and the mapping drive of a map folder, each checked against the sha256 that
     ``map.yaml`` (``doc``) lists for it (maps written before the checksums were kept list none)."""
     gpath = map_dir / "ground.npz"
@@ -626,7 +626,7 @@ def _tiling_matches(tiles: np.ndarray, face_tile: np.ndarray, v, f, origin, tile
     return True
 
 
-def _tile_keys(i, j) -> np.ndarray:
+def tile_keys(i, j) -> np.ndarray:
     """One sortable int64 per (i, j) grid index pair (indices clipped to ±2**30)."""
     lim = 2**30
     i = np.clip(np.asarray(i, np.float64), -lim, lim - 1).astype(np.int64) + lim
@@ -634,8 +634,8 @@ def _tile_keys(i, j) -> np.ndarray:
     return i * (2 * lim) + j
 
 
-def _tile_ij(keys: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`_tile_keys`: ``(n, 2)`` int64 (i, j)."""
+def tile_ij(keys: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`tile_keys`: ``(n, 2)`` int64 (i, j)."""
     lim = 2**30
     return np.stack([keys // (2 * lim) - lim, keys % (2 * lim) - lim], axis=1)
 

@@ -157,10 +157,10 @@ def import_mesh_streaming(
         GROUND_RULE_LABEL,
         NON_GROUND_RGB,
         GroundGrid,
-        _tile_ij,
-        _tile_keys,
         fill_cell_medians,
         ground_grid_layout,
+        tile_ij,
+        tile_keys,
         write_map_files,
     )
     from rangemcl.mapping.store import write_index
@@ -220,7 +220,7 @@ def import_mesh_streaming(
             used[f.reshape(-1)] = 1
             centroid = (tri[:, 0, :2] + tri[:, 1, :2] + tri[:, 2, :2]) / 3.0
             ij = np.floor((centroid - origin) / tile_size_m)
-            keys = _tile_keys(ij[:, 0], ij[:, 1])
+            keys = tile_keys(ij[:, 0], ij[:, 1])
             for key in np.unique(keys):
                 part = work / f"faces_{key}_{n_block:06d}.npy"
                 np.save(part, f[keys == key].astype(np.int64))
@@ -263,7 +263,7 @@ def import_mesh_streaming(
                 cell = np.clip(
                     np.floor((pg[:, :2] - g_origin) / g_cell).astype(np.int64), 0, [gnx - 1, gny - 1]
                 )
-                owner = _tile_keys(*np.floor((g_origin + cell * g_cell - origin) / tile_size_m).T)
+                owner = tile_keys(*np.floor((g_origin + cell * g_cell - origin) / tile_size_m).T)
                 for key in np.unique(owner):
                     part = work / f"gv_{key}_{n_block:06d}.npy"
                     np.save(part, pg[owner == key])
@@ -279,7 +279,7 @@ def import_mesh_streaming(
             entries.append(
                 write_with_coarse(
                     out_dir,
-                    _tile_ij(np.array([key]))[0],
+                    tile_ij(np.array([key]))[0],
                     _xyz(vfile[verts]),
                     inverse.reshape(-1, 3).astype(np.int32),
                     np.asarray(is_ground[verts]).astype(bool),

@@ -52,9 +52,9 @@ from pathlib import Path
 import numpy as np
 
 from rangemcl.errors import InputError
+from rangemcl.heap import return_freed_memory
 from rangemcl.mapping.cache import TileCache, caster_tiles, tile_distances
-from rangemcl.mapping.heap import return_freed_memory
-from rangemcl.mapping.meshmap import _read_ground_and_drive, _tile_keys, read_map_yaml
+from rangemcl.mapping.meshmap import read_ground_and_drive, read_map_yaml, tile_keys
 from rangemcl.mapping.store import TileStore
 
 # What the localizer holds of a whole map (MeshMap + one BVH) per triangle: town_large's 6.7 M triangles
@@ -144,11 +144,11 @@ class MapView:
         self.format_version = version
         self.meta = doc["meta"]
         self.store = TileStore.open(map_dir)
-        self.ground, self.drive_xy = _read_ground_and_drive(map_dir, doc)
+        self.ground, self.drive_xy = read_ground_and_drive(map_dir, doc)
         self.tiles = self.store.tiles
         self.tile_size_m = self.store.tile_size_m
         self.tile_origin_xy = self.store.origin_xy
-        keys = _tile_keys(self.tiles[:, 0], self.tiles[:, 1])
+        keys = tile_keys(self.tiles[:, 0], self.tiles[:, 1])
         self._key_order = np.argsort(keys)
         self._keys_sorted = keys[self._key_order]
         self.caster = caster
@@ -195,7 +195,7 @@ class MapView:
         ok = np.isfinite(x) & np.isfinite(y)
         i = np.floor((np.where(ok, x, 0.0) - self.tile_origin_xy[0]) / self.tile_size_m)
         j = np.floor((np.where(ok, y, 0.0) - self.tile_origin_xy[1]) / self.tile_size_m)
-        keys = _tile_keys(i, j)
+        keys = tile_keys(i, j)
         pos = np.clip(np.searchsorted(self._keys_sorted, keys), 0, len(self._keys_sorted) - 1)
         found = ok & (self._keys_sorted[pos] == keys)
         return np.where(found, self._key_order[pos], -1).astype(np.int64)

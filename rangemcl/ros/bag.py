@@ -58,7 +58,7 @@ META_TOPIC = "/simbed/meta"
 TRUTH_TOPIC = "/ground_truth"
 
 
-def _rosbags(what: str):
+def require_rosbags(what: str):
     try:
         import rosbags  # noqa: F401
     except ImportError:
@@ -108,7 +108,7 @@ class BagWriter:
     ) -> None:
         if fmt not in FORMATS:
             raise InputError(f"format {fmt!r}: expected one of {', '.join(FORMATS)} (or kitti)")
-        _rosbags(f"--format {fmt}")
+        require_rosbags(f"--format {fmt}")
         from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
         self.out = Path(out)
@@ -487,9 +487,9 @@ def sensor_to_base_transform(values) -> np.ndarray:
         raise InputError(
             f"--sensor-to-base {values}: expected 6 finite numbers x,y,z,roll,pitch,yaw (m, deg)"
         )
-    from rangemcl.sensors import _transform_from_xyz_rpy
+    from rangemcl.sensors import transform_from_xyz_rpy
 
-    return _transform_from_xyz_rpy(v[:3], v[3:])
+    return transform_from_xyz_rpy(v[:3], v[3:])
 
 
 @dataclass
@@ -699,7 +699,7 @@ def open_bag(
 ) -> BagSequence:
     """Open a bag as a sequence (checks the topics, reads the small topics, indexes the scans)."""
     opt = options or BagOptions()
-    _rosbags(f"reading {path}")
+    require_rosbags(f"reading {path}")
     from rosbags.highlevel import AnyReader, AnyReaderError
     from rosbags.rosbag1 import ReaderError as Reader1Error
     from rosbags.rosbag2 import ReaderError as Reader2Error
@@ -787,9 +787,9 @@ def _open(reader, root: Path, opt: BagOptions, require_poses: bool) -> BagSequen
                     f"{root}: no static transform from {base} to the scans' frame {frame_id!r} "
                     f"(TF frames: {', '.join(frames) or 'none'}); give --sensor-to-base x,y,z,roll,pitch,yaw"
                 )
-    from rangemcl.sensors import _xyz_rpy_from_transform
+    from rangemcl.sensors import xyz_rpy_from_transform
 
-    xyz, rpy = _xyz_rpy_from_transform(T_base_sensor)
+    xyz, rpy = xyz_rpy_from_transform(T_base_sensor)
     seq.meta["sensor_to_base"] = {"xyz_m": xyz, "rpy_deg": rpy, "source": mount_source}
     if odom is not None:
         seq.odometry = _at(odom[0], odom[1], seq.times, f"odometry {odom_topic}", root) @ T_base_sensor

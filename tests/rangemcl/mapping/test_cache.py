@@ -308,7 +308,7 @@ _RESIDENT_PROBE = r"""
 import re, sys
 import numpy as np
 from rangemcl.mapping.cache import TileCache, caster_tiles
-from rangemcl.mapping.heap import return_freed_memory
+from rangemcl.heap import return_freed_memory
 from rangemcl.mapping.store import TileStore
 from rangemcl.raycast import RayCaster
 

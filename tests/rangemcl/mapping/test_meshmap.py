@@ -612,6 +612,7 @@ def test_map_info_reads_a_tiled_map_one_tile_at_a_time(tmp_path, save_v1):
     """``rangemcl map-info``: of a map of format 2, the same counts and ground shares as the whole map's
     summary (border vertices counted in each tile file), its coarse level and place prior, and the size of
     every file; of a map of format 1, the whole map's summary."""
+    from rangemcl.localization.place_prior import describe_prior_file
     from rangemcl.mapping.coarse import add_coarse_level
     from rangemcl.mapping.info import map_info
     from rangemcl.mapping.meshmap import map_summary
@@ -619,7 +620,7 @@ def test_map_info_reads_a_tiled_map_one_tile_at_a_time(tmp_path, save_v1):
     m = make_map()
     d = tmp_path / "v2"
     m.save(d)
-    info = map_info(d)
+    info = map_info(d, describe_prior=describe_prior_file)
     whole = map_summary(MeshMap.load(d))
     assert info["triangles"] == whole["triangles"] and info["tiles"] == whole["tiles"]
     assert info["size_m"] == whole["size_m"] and info["extent_m"] == whole["extent_m"]
@@ -634,7 +635,7 @@ def test_map_info_reads_a_tiled_map_one_tile_at_a_time(tmp_path, save_v1):
     assert info["coarse_level"].startswith("none") and info["place_prior"].startswith("none")
     assert info["index_open_ms"] >= 0 and info["format_version"] == 2
     add_coarse_level(d, 0.2)
-    info = map_info(d)
+    info = map_info(d, describe_prior=describe_prior_file)
     assert info["coarse_level"].startswith(f"{len(store.entries)} tiles")
     assert info["bytes_on_disk"] == sum(p.stat().st_size for p in d.rglob("*") if p.is_file())
     v1 = tmp_path / "v1"
