@@ -17,242 +17,503 @@ from rangemcl.localization.scan_prep import RAY_SAMPLINGS
 
 @dataclass
 class ParticleSettings:
-    global_count: int = 10000  # particles spread for global localization (and after a recovery)
-    converged_count: int = 100  # particles kept once converged
-    tracking_count: int = 100  # particles around the initial pose in tracking mode
-    tracking_sigma_xy_m: float = 0.5  # spread of the tracking-mode start
+    """How many particles the filter holds in each phase (global search, converged, tracking), when it
+    resamples, how it roughens the copies, and how the pose estimate is formed from them."""
+
+    global_count: int = 10000
+    """Particles spread over the drivable area for global localization and again after each recovery.
+    While searching, the KLD bound shrinks the cloud but never grows it beyond this count."""
+    converged_count: int = 100
+    """Particles kept once a search declares convergence (resampled from the winning hypothesis, or from
+    the whole cloud with `convergence.method: tiles`); the converged filter goes on with this many."""
+    tracking_count: int = 100
+    """Particles drawn around the given start pose in tracking mode (`--mode tracking`)."""
+    tracking_sigma_xy_m: float = 0.5
+    """Standard deviation in m, in x and y, of the tracking-mode start around the given pose (normal);
+    0 puts every particle on it."""
     tracking_sigma_yaw_deg: float = 3.0
-    resample_neff_ratio: float = 0.75  # resample when N_eff < ratio · N
-    jitter_xy_m: float = 0.05  # roughening after each resampling once converged (keeps copies apart)
+    """Standard deviation in degrees of the tracking-mode start's yaw around the given pose."""
+    resample_neff_ratio: float = 0.75
+    """Resampling threshold, a share in (0, 1]: a converged filter (and a search with `convergence.method:
+    tiles`) resamples when the effective sample size N_eff falls below this share of the particle count.
+    The hypothesis search resamples at every update regardless."""
+    jitter_xy_m: float = 0.05
+    """Roughening in m once converged: a normal offset of this standard deviation in x and y is added to
+    every copy after each resampling, which keeps the copies of one particle apart. 0: none."""
     jitter_yaw_deg: float = 0.5
-    global_jitter_xy_m: float = 0.05  # roughening before convergence (lets clusters explore; 0.2 m and
-    global_jitter_yaw_deg: float = 0.25  # 2 degrees before revision 14, whose polish explores instead:
-    # a copy roughened by 2 degrees falls off the likelihood's peak, tools/likelihood_peak.py)
-    estimate_best_share: float = 0.8  # estimate = weighted mean of the best 80 %
+    """Roughening in degrees of yaw after each resampling once converged (as `jitter_xy_m`); 0: none."""
+    global_jitter_xy_m: float = 0.05
+    """Roughening in m of x and y after each resampling before convergence, which lets a cluster explore
+    around its particles. Kept small: the range likelihood is sharply peaked, a copy roughened far falls
+    off the peak, and the search's polish (`convergence.polish_hypotheses`) explores instead."""
+    global_jitter_yaw_deg: float = 0.25
+    """Roughening in degrees of yaw after each resampling before convergence (as `global_jitter_xy_m`)."""
+    estimate_best_share: float = 0.8
+    """Share in (0, 1] of the particles, heaviest first, whose weighted mean (circular in yaw) is the pose
+    estimate; 1: the whole cloud's weighted mean. While the hypothesis search runs, the estimate is the
+    leading hypothesis's centroid instead."""
 
 
 @dataclass
 class MotionSettings:
-    update_distance_m: float = 0.2  # weight only after the car moved this far ...
-    update_angle_deg: float = 5.0  # ... or turned this much
-    rot_per_rot: float = 0.05  # odometry motion model noise (Thrun et al. alpha1..alpha4)
+    """The odometry motion model: when the filter weighs a scan, how much noise each prediction adds, and
+    the online calibration of the odometry's translation scale and the gyro's yaw-rate bias."""
+
+    update_distance_m: float = 0.2
+    """Distance in m the car must drive since the last update before the particles are moved and weighed
+    with a scan (or turn `update_angle_deg`, whichever comes first); between updates the estimate follows
+    the odometry. 0: every frame."""
+    update_angle_deg: float = 5.0
+    """Turn in degrees since the last update that also triggers an update (see `update_distance_m`)."""
+    rot_per_rot: float = 0.05
+    """Motion model noise alpha1 (Thrun et al.'s odometry model), a factor: standard deviation of each
+    rotation of the increment, in rad per rad turned."""
     rot_per_trans: float = 0.005
+    """Motion model noise alpha2, in rad per m driven: rotation noise that grows with the distance."""
     trans_per_trans: float = 0.05
+    """Motion model noise alpha3, a factor (m per m driven): translation noise that grows with the
+    distance."""
     trans_per_rot: float = 0.05
-    odometry_scale: float = 1.0  # the odometry's translation scale as known (the calibration starts here)
-    gyro_bias_deg_s: float = 0.0  # the gyro's yaw-rate bias as known (subtracted; the calibration's start)
-    calibrate_scale: bool = True  # estimate the scale online (rangemcl.localization.calibration) ...
-    calibrate_gyro_bias: bool = True  # ... and the gyro's bias
-    calibration_window_m: float = 100.0  # the scale estimate's memory (metres driven)
-    calibration_window_s: float = 300.0  # the bias estimate's memory (seconds)
-    calibration_prior_m: float = 3.0  # weight of the configured scale, as metres of evidence
-    calibration_prior_s: float = 0.3  # weight of the configured bias, as seconds of evidence
-    calibration_settle_updates: int = 10  # updates after a convergence left out (the cloud settles)
-    calibration_outlier_m: float = 0.25  # an interval whose motion disagrees with the calibrated odometry
-    calibration_outlier_deg: float = 2.0  # by more than this is left out (a recovery, a refinement's jump)
-    calibration_min_scale: float = 0.8  # the scale estimate (both calibrations) is kept within these
+    """Motion model noise alpha4, in m per rad turned: translation noise that grows with the turns."""
+    odometry_scale: float = 1.0
+    """The odometry's translation scale as known, a factor (> 0) every odometry translation is multiplied
+    by before the prediction; the online scale calibration starts from it."""
+    gyro_bias_deg_s: float = 0.0
+    """The gyro's yaw-rate bias as known, in degrees per second: times each frame's duration, it is
+    subtracted from the odometry's turn; the online bias calibration starts from it. 0: none."""
+    calibrate_scale: bool = True
+    """Estimate the odometry's translation scale online while converged, by the method `calibration`
+    names; false: keep `odometry_scale`."""
+    calibrate_gyro_bias: bool = True
+    """Estimate the gyro's yaw-rate bias online while converged; false: keep `gyro_bias_deg_s`."""
+    calibration_window_m: float = 100.0
+    """Memory of the scale estimate in m driven (`calibration: estimator`): past evidence loses weight by
+    a factor 1/e per this distance."""
+    calibration_window_s: float = 300.0
+    """Memory of the bias estimate in seconds (`calibration: estimator`): past evidence loses weight by a
+    factor 1/e per this time."""
+    calibration_prior_m: float = 3.0
+    """Weight of the configured `odometry_scale` in the estimator, as m of evidence (forgotten like the
+    rest); larger: the estimate leaves the configured value more slowly."""
+    calibration_prior_s: float = 0.3
+    """Weight of the configured `gyro_bias_deg_s` in the estimator, as seconds of evidence."""
+    calibration_settle_updates: int = 10
+    """Updates after each convergence (or tracking start) left out of the calibration, while the cloud
+    settles on its place."""
+    calibration_outlier_m: float = 0.25
+    """An interval between two converged updates whose estimated translation disagrees with the
+    calibrated odometry by more than this, in m, is left out of the estimator (a recovery, a
+    refinement's jump)."""
+    calibration_outlier_deg: float = 2.0
+    """As `calibration_outlier_m`, for the interval's turn, in degrees."""
+    calibration_min_scale: float = 0.8
+    """Lower bound of the scale estimate, a factor (both calibration methods keep it within the bounds)."""
     calibration_max_scale: float = 1.25
-    calibration: str = "estimator"  # estimator (a slow estimator on the filter's corrections) | particles
-    # (scale and bias as extra particle state; rangemcl.localization.calibration.ParticleCalibration): ...
-    calibration_sigma_scale: float = 0.03  # ... each particle's scale drawn this far around the estimate
-    calibration_sigma_bias_deg_s: float = 0.5  # ... and its bias, at a convergence
-    calibration_walk_scale: float = 0.001  # ... random walk of a particle's scale per sqrt(metre)
-    calibration_walk_bias_deg_s: float = 0.005  # ... and of its bias per sqrt(second)
+    """Upper bound of the scale estimate, a factor; at least `calibration_min_scale`."""
+    calibration: str = "estimator"
+    """How scale and bias are estimated: `estimator` (a slow estimator on the filter's own corrections
+    between converged updates) or `particles` (scale and bias as extra state of each converged particle,
+    selected by the weighting: `rangemcl.localization.calibration.ParticleCalibration`)."""
+    calibration_sigma_scale: float = 0.03
+    """`calibration: particles`: standard deviation (a factor) of each particle's scale, drawn around the
+    running estimate at each convergence."""
+    calibration_sigma_bias_deg_s: float = 0.5
+    """`calibration: particles`: standard deviation in degrees per second of each particle's gyro bias,
+    drawn around the running estimate at each convergence."""
+    calibration_walk_scale: float = 0.001
+    """`calibration: particles`: random walk of a particle's scale per square root of a metre driven, so
+    that resampling does not collapse the states."""
+    calibration_walk_bias_deg_s: float = 0.005
+    """`calibration: particles`: random walk of a particle's gyro bias, in degrees per second per square
+    root of a second."""
 
 
 @dataclass
 class ObservationSettings:
-    model: str = (
-        "range"  # range (paper Eq. 5) | overlap | likelihood_field | histogram (rangemcl.localization.models)
-    )
-    sigma_m: float = 0.25  # σ_d of Eq. 5 (paper 5.0, reference code 2.0; chosen by measurement, README)
-    rays: int = 500  # measured points cast per particle (a random subset of the valid ones) ...
-    ray_sampling: str = "structure"  # ... each valid point alike (points), each elevation band alike
-    # (elevation: 2-degree bands of the sensor's vertical field, so that a sensor whose beams crowd the
-    # road near the car still sends rays to what lies farther and higher), or structure: at most
-    # ground_share of the rays from the road (points within 0.5 m of the sensor's ground), the rest from
-    # what stands on it, each part evenly over the elevation bands
-    ground_share: float = 0.2  # ray_sampling structure: the road's share of the rays
-    tall_share: float = 0.6  # ... and of the rest (what stands on the road), the share of the points at
-    # least tall_m above the ground: facades above the parked cars, which change between drives (0: all
-    # structure alike, revision 8's rule)
+    """The observation model and the scan's rays that weigh the particles: which model, which measured
+    points are cast from each particle, and how their residuals count."""
+
+    model: str = "range"
+    """The observation model that scores the particles: `range` (the paper's Eq. 5 on the mean range
+    residual), or the baselines `overlap`, `likelihood_field` and `histogram`
+    (`rangemcl.localization.models`)."""
+    sigma_m: float = 0.25
+    """σ_d of Eq. 5 in m (`model: range`): the log-likelihood of a mean residual d is −½ d² / σ_d², so a
+    smaller σ_d makes each update tell places apart more sharply. The paper uses 5.0 m, its reference code
+    2.0 m."""
+    rays: int = 500
+    """Measured points cast from every particle per update, in rays: a random subset of the scan's valid
+    points drawn as `ray_sampling` says (all of them when the scan has fewer). The cost grows with it."""
+    ray_sampling: str = "structure"
+    """How the rays are drawn: `points` (each valid point alike), `elevation` (each 2-degree elevation
+    band alike, so that a sensor whose beams crowd the road near the car still sends rays farther and
+    higher) or `structure` (at most `ground_share` of the rays from the road, i.e. points within 0.5 m of
+    the sensor's ground, the rest from what stands on it, each part evenly over the elevation bands)."""
+    ground_share: float = 0.2
+    """`ray_sampling: structure`: the road's share of the rays, in [0, 1]: the road fits almost anywhere,
+    so its rays say little about the place."""
+    tall_share: float = 0.6
+    """`ray_sampling: structure`: of the rays not on the road, the share in [0, 1] drawn from points at
+    least `tall_m` above the ground (facades above the parked cars, which change between drives).
+    0: all structure alike."""
     tall_m: float = 2.0
-    margin_m: float = 2.0  # rays end at measured range + margin; a miss counts as the margin
-    cap_m: float | None = 1.0  # residual cap (the robust variant); None: the paper's plain mean
-    cap_beyond_m: float | None = 0.5  # cost of a ray measured more than cap_m longer than the map's
-    # surface (it passed where the map holds a removed object: weak evidence against the pose); None: cap_m
-    min_range_m: float = 2.0  # ignore returns this close (the car itself)
-    max_range_m: float = 40.0  # as far as the map builder meshes (its scans.max_range_m)
-    deskew: bool = True  # with per-point firing times and odometry
-    level_with_imu: bool = True  # rotate the scan by the IMU's roll and pitch
-    overlap_tau_m: float = 0.3  # overlap model: a ray agrees within this
+    """`ray_sampling: structure`: height in m above the sensor's ground from which a point counts as tall
+    (`tall_share`)."""
+    margin_m: float = 2.0
+    """Margin in m past the measured range up to which each ray is cast; a ray that meets nothing by then
+    counts as a residual of this margin."""
+    cap_m: float | None = 1.0
+    """Per-ray residual cap in m (the robust variant of Eq. 5, against moving and changed objects); rays
+    more than this off the map's surface either way also leave the inlier share (of those short of it, at
+    most half). `None`: no cap, the paper's plain mean."""
+    cap_beyond_m: float | None = 0.5
+    """Cost in m of a ray measured more than `cap_m` longer than the map's surface: it passed where the
+    map holds an object that is gone, weak evidence against the pose. At most `cap_m`; `None`: `cap_m`
+    (both directions alike)."""
+    min_range_m: float = 2.0
+    """Returns closer than this, in m, are ignored (the car itself)."""
+    max_range_m: float = 40.0
+    """Returns farther than this, in m, are ignored: keep it at the map builder's `scans.max_range_m`, the
+    range the map was meshed to. Also the histogram model's range and part of the radius around the
+    particles that a map within a memory budget keeps loaded."""
+    deskew: bool = True
+    """De-skew the rays where the scan has per-point firing times: each point is moved by the part of the
+    frame's odometry after its firing time (the motion taken as uniform over the frame)."""
+    level_with_imu: bool = True
+    """Rotate the scan by the IMU's roll and pitch, where the sequence has them, before casting and before
+    matching it with the place prior."""
+    overlap_tau_m: float = 0.3
+    """`model: overlap`: a ray agrees with the map when its residual is within this, in m (also the
+    model's inlier distance)."""
     overlap_sigma: float = 0.1
-    histogram_bins: int = 50  # histogram model: bins over [0, max_range_m)
+    """`model: overlap`: σ_o, a share of the rays: the log-likelihood of an agreeing share a is
+    −½ ((1 − a) / σ_o)²."""
+    histogram_bins: int = 50
+    """`model: histogram`: bins of the range histograms, evenly over [0, `max_range_m`)."""
     histogram_sigma: float = 0.05
-    field_voxel_m: float = 0.1  # likelihood field: voxel map resolution
+    """`model: histogram`: σ_h, as a share of the histogram's range: the log-likelihood of the Wasserstein
+    distance W between the measured and the rendered histogram is −½ (W / σ_h)²."""
+    field_voxel_m: float = 0.1
+    """`model: likelihood_field`: voxel size in m of the map's surface voxels that beam ends are scored
+    against."""
     field_sigma_m: float = 0.2
-    field_weight: float = 20.0  # log-likelihood = weight · mean per-ray log-likelihood
+    """`model: likelihood_field`: σ in m of the Gaussian on a beam end's distance to the nearest surface
+    voxel."""
+    field_weight: float = 20.0
+    """`model: likelihood_field`: a factor: log-likelihood = weight · mean per-ray log-likelihood, so the
+    scan weighs as much as this many independent rays."""
 
 
 @dataclass
 class ConvergenceSettings:
-    method: str = "hypotheses"  # hypotheses (rangemcl.localization.hypotheses) | tiles (the paper's)
-    tiles: int = 1  # tiles: converged when all particles lie in this many tiles ...
-    max_radius_m: float = 10.0  # ... and 95 % of them within this radius of the estimate;
-    compact_radius_m: float = 5.0  # a cloud this compact counts as converged across a tile border; also
-    # hypotheses: the winner's 95 % weight radius must be within this
-    cluster_m: float = 3.0  # hypotheses: particles in touching cells of this size form one cluster
-    margin_nats: float = 6.0  # ... the leader's log weight share must beat the best rival's by this
-    separation_m: float = 5.0  # (a rival: a cluster farther than this from the leader) ...
-    min_inliers: float = 0.6  # ... and its best particle's inlier share must reach this (it fits at all)
-    min_distance_m: float = 8.0  # ... having led over this much driving
-    min_cluster_particles: int = 20  # every surviving cluster keeps at least this many particles
-    prune_nats: float = 15.0  # clusters this far below the leader are dropped
-    max_clusters: int = 150  # at most this many clusters are kept (the largest shares)
-    kld_epsilon: float = 0.05  # KLD-sampling bound while searching (Fox 2003) ...
-    kld_bin_xy_m: float = 2.0  # ... on bins of this size ...
+    """When a global search has converged, and how the search keeps its hypotheses (clusters of
+    particles) until then (`rangemcl.localization.hypotheses`)."""
+
+    method: str = "hypotheses"
+    """The convergence rule: `hypotheses` (a sequential test on clusters of particles) or `tiles` (the
+    paper's rule: all particles within `tiles` map tiles)."""
+    tiles: int = 1
+    """`method: tiles`: converged when all particles lie in at most this many map tiles (and 95 % of them
+    within `max_radius_m`)."""
+    max_radius_m: float = 10.0
+    """`method: tiles`: radius in m around the estimate that must also hold 95 % of the particles."""
+    compact_radius_m: float = 5.0
+    """Radius in m. `method: tiles`: a cloud whose 95 % radius is within it counts as converged even across
+    a tile border; `method: hypotheses`: the winner's 95 % weight radius must be within it."""
+    cluster_m: float = 3.0
+    """`method: hypotheses`: cell size in m; particles in touching cells of this size form one cluster
+    (one hypothesis)."""
+    margin_nats: float = 6.0
+    """`method: hypotheses`: evidence margin in nats: the leader's log weight share must beat the best
+    rival's by this before the search converges."""
+    separation_m: float = 5.0
+    """Distance in m beyond which a cluster is a rival of the leader: a satellite nearer on the same street
+    is the same place. The recovery uses it too: its second opinion's places lie farther than this from
+    the estimate, and a better place confirms the last one when it is found within this of where that
+    one moved."""
+    min_inliers: float = 0.6
+    """`method: hypotheses`: share in [0, 1]: the winner's best particle must also fit at least this share
+    of the structure rays (models with an inlier share), so that a place that merely fits less badly than
+    the rest does not win."""
+    min_distance_m: float = 8.0
+    """`method: hypotheses`: distance in m the car must have driven with the same leader before the search
+    converges: a look-alike street fits for a stretch, not for ever."""
+    min_cluster_particles: int = 20
+    """`method: hypotheses`: particles each surviving cluster keeps at resampling, at least, so that a
+    hypothesis is dropped by the evidence against it, not by sampling."""
+    prune_nats: float = 15.0
+    """`method: hypotheses`: clusters whose log weight share lies this many nats below the leader's are
+    dropped at resampling."""
+    max_clusters: int = 150
+    """`method: hypotheses`: at most this many clusters (those of the largest shares) are kept at
+    resampling."""
+    kld_epsilon: float = 0.05
+    """KLD-sampling bound (Fox, 2003) while searching: the particle count keeps the KL divergence between
+    the sampled and the true posterior below this, in nats (smaller: more particles)."""
+    kld_bin_xy_m: float = 2.0
+    """Bin size in m, in x and y, of the occupied bins that the KLD bound counts."""
     kld_bin_yaw_deg: float = 15.0
-    min_search_particles: int = 1000  # ... but never fewer than this while searching
-    polish_hypotheses: int = (
-        16  # while searching, the heaviest this many hypotheses (a cluster's particles in
-    )
-    # one 30 degree sector of yaw) get a dense local search around their best particle on each scan ...
-    polish_keep: int = 8  # ... whose best this many poses join the cloud (revision 14; 0: off, as before)
+    """Bin size in degrees of yaw of the occupied bins that the KLD bound counts."""
+    min_search_particles: int = 1000
+    """The search keeps at least this many particles whatever the KLD bound says."""
+    polish_hypotheses: int = 16
+    """`method: hypotheses`: while searching, the heaviest this many hypotheses (a cluster's particles in
+    one 30-degree sector of yaw) get a dense local grid search around their best particle on each scan
+    (a coarse grid of ±2 m and ±8 degrees on every third ray, then a fine one). 0: no polish."""
+    polish_keep: int = 8
+    """The best this many poses of each polished hypothesis's fine grid join the cloud; 0: no polish. The
+    range likelihood is sharply peaked, so without the polish a place is judged by particles off its
+    peak."""
 
 
 @dataclass
 class RecoverySettings:
+    """When a converged filter declares itself lost and searches again: a watch on its evidence raises a
+    suspicion, and a second opinion from the place prior tests it (`rangemcl.localization.lost`)."""
+
     enabled: bool = True
-    signal: str = "inliers"  # inliers: lost when even the best particle's inlier share (rays within
-    # 0.3 m of the map among those not measured beyond it) falls below inlier_factor × its running median;
-    # residual: when the best mean residual rises (the settings below)
+    """Watch whether the converged filter is lost; false: it never relocalizes (the paper's filter)."""
+    signal: str = "inliers"
+    """What the watch follows: `inliers` (the best particle's inlier share, i.e. of its rays within 0.3 m
+    of the map among those not measured far beyond it, against its running median) or `residual` (the
+    best particle's mean residual against its running median and the floor)."""
     inlier_factor: float = 0.5
-    inlier_residual_factor: float = 0.75  # ... or below this × its median while the best residual is
-    inlier_residual_jump: float = 3.0  # ... above this × its own median
-    min_residual_m: float | None = None  # lost when the best particle's badness exceeds this (None: the
-    # model's floor, 0.3 m for the range model) ...
-    factor: float = 2.0  # ... and this many times its median over the recent converged updates ...
-    updates: int = 5  # ... for this many updates in a row
-    history: int = 50  # converged updates remembered for the median
-    second_opinion: bool = True  # a suspicion is lost only when the place prior's best places for the
-    # scan (rangemcl.localization.lost) hold one that explains it clearly better; else it is vetoed
-    opinion_top: int = 100  # ... those places (at least separation_m from the estimate; 30 before
-    # revision 11) ...
-    opinion_per_place: int = 16  # ... each with this many particles over its cell
-    polish_places: int = 16  # ... then the best this many places get a second look (0: none, revision 9;
-    # 8 in revision 10):
-    polish_per_place: int = 48  # ... this many particles around each one's best particle ...
-    polish_sigma_xy_m: float = 0.6  # ... spread this much (normal; three rounds, each with half the last
-    polish_sigma_yaw_deg: float = 3.0  # ... spread) and this much in yaw (revision 10; localization.lost)
-    polish_grid: bool = True  # ... or (revision 15) the search's grids instead of those random rounds: a
-    # coarse one (+-2 m, +-8 deg) on every third ray, then a fine one around its best pose
-    rival_first: bool = True  # the last better place (moved with the odometry) is confirmed when it is
-    # still better, even where another place fits a little more (revision 15; docs/results/v15)
-    doubt_opinions: bool = True  # a second opinion also at every update whose inlier share is below 0.8 of
-    # its running level, not only in a suspicion or the probation (revision 10) ...
-    doubt_inlier_gain: float = 0.25  # ... where a better place must gain this much of the inlier share
-    opinion_inlier_gain: float = 0.15  # better: inlier share higher by this (and a lower residual)
-    opinion_badness_ratio: float = 0.7  # ... or, for models without an inlier share, badness below this x
-    # the filter's. Where the filter's inlier share leaves no room for the gain (above 1 - gain; the
-    # MQ-8's far rays saturate it at a wrong place as at the true one), a place with as many inliers
-    # (within 0.02) and a badness below this x the filter's is better as well (revision 12; None: off,
-    # revisions 11 and before; docs/results/v11 and v12)
+    """`signal: inliers`: an update is bad when the best inlier share falls below this factor × its
+    running median."""
+    inlier_residual_factor: float = 0.75
+    """`signal: inliers`: an update is also bad when the inlier share falls below this factor × its
+    median while the best residual is above `inlier_residual_jump` × its own median (and the floor)."""
+    inlier_residual_jump: float = 3.0
+    """`signal: inliers`: factor over the best residual's running median beyond which the milder
+    `inlier_residual_factor` applies."""
+    min_residual_m: float | None = None
+    """Floor of the residual watch, in the model's badness units (m for the range model): a best residual
+    counts as high only above it (`signal: residual`, and `inlier_residual_jump`). `None`: the model's own
+    floor (0.3 m for the range model)."""
+    factor: float = 2.0
+    """`signal: residual`: an update is bad when the best residual exceeds this factor × its median over
+    the recent good converged updates (and the floor)."""
+    updates: int = 5
+    """Bad updates in a row that raise a suspicion (which is lost at once when no second opinion can be
+    asked)."""
+    history: int = 50
+    """Good converged updates remembered for the running medians."""
+    second_opinion: bool = True
+    """Test each suspicion against the place prior: it is lost only when one of the prior's best places
+    for the scan explains it clearly better than the filter's own cloud, else the alarm is vetoed (the
+    world changed, not the place). False: the watch alone decides."""
+    opinion_top: int = 100
+    """Places scored by each second opinion: the prior's best this many (cell, yaw) candidates for the
+    scan, those within `convergence.separation_m` of the estimate left out."""
+    opinion_per_place: int = 16
+    """Particles scored on each of those places, spread evenly over its prior cell and around its aligned
+    yaw."""
+    polish_places: int = 16
+    """Best distinct places (at least 3 m apart) that get a second look around their best particle;
+    0: no second look."""
+    polish_per_place: int = 48
+    """Particles per place in each round of the random second look, also drawn around the last better
+    place and in the look at the past (`history_updates`)."""
+    polish_sigma_xy_m: float = 0.6
+    """Spread in m (normal, in x and y) of the random second look's particles; three rounds, each around
+    the best so far with half the last spread."""
+    polish_sigma_yaw_deg: float = 3.0
+    """Spread in degrees of yaw of the random second look's particles (as `polish_sigma_xy_m`)."""
+    polish_grid: bool = True
+    """The second look uses the search's grids instead of the random rounds: a coarse one (±2 m,
+    ±8 degrees) on every third ray, then a fine one around its best pose."""
+    rival_first: bool = True
+    """The last better place (moved with the odometry) is judged first and confirmed while it is still
+    better, even where another place fits a little more, so that a look-alike does not restart the count
+    of confirmations."""
+    doubt_opinions: bool = True
+    """Ask for a second opinion also at every update in doubt (inlier share below `doubt_ratio` of its
+    running level), not only in a suspicion or the probation: a wrong place often fits later scans only
+    partly, without falling as low as the watch's limit."""
+    doubt_inlier_gain: float = 0.25
+    """At an update in doubt outside a suspicion and the probation: the inlier share a better place must
+    gain, in [0, 1]. Stricter than `opinion_inlier_gain`: in a changed street the true pose fits less
+    well, and a distant place's second look can beat it by the usual gain."""
+    opinion_inlier_gain: float = 0.15
+    """A place is better when its inlier share over the far rays is higher by at least this share (and its
+    residual lower)."""
+    opinion_badness_ratio: float = 0.7
+    """For models without an inlier share: a place is better when its badness is below this factor × the
+    filter's."""
     saturated_badness_ratio: float | None = 0.75
-    # a better place must also explain the recent past: its mean inlier share over the far rays of the
-    # previous history_updates updates' scans (moved back along the odometry, polished like the opinion's
-    # places) at least the filter's best particle's less history_margin (a street that changed since the
-    # mapping drive fits the true pose badly now, not over the last updates; revision 12, 0: off;
-    # docs/results/v12)
+    """Where the filter's inlier share leaves no room for the gain (above 1 − gain: a sensor whose far rays
+    nearly all fit at a wrong place as at the true one), a place with as many inliers (within 0.02) and a
+    badness below this factor × the filter's is better as well. In (0, 1); `None`: off."""
     history_updates: int = 30
+    """A better place must also explain the recent past: its mean inlier share over the far rays of this
+    many previous updates' scans (moved back along the odometry) must reach the filter's best particle's
+    less `history_margin`. A street that changed since the mapping drive fits the true pose badly now but
+    not over the past. 0: off."""
     history_margin: float = 0.05
-    history_min_inliers: float = 0.5  # ... asked only while the filter's best particle still fits at least
-    # this share of the far rays (below it, a teleport rather than a changed street: its past would hold
-    # a true new place back)
-    history_in_probation: bool = True  # ... also in the probation after a convergence (revision 13 left it
-    # out there: the search chose its place on those same past scans, and the past delayed a wrong
-    # convergence's catch by 2 frames on town_large; revision 14 takes it again: its polished search
-    # converges earlier, and the MQ-8's first one there, at the true place, was called lost 7 updates
-    # later without it; docs/results/v12, v13, v14)
-    history_skips_suspicion: bool = True  # ... on the scans before the current suspicion (its bad updates
-    # left out; revision 15: a vehicle alongside an MQ-8 hid the far rays at the true pose for 15 updates
-    # on town_medium, and over a past that held them a place 171 m off fit within 0.03 of it; v15 results)
-    opinion_min_range_m: float = 5.0  # the opinion compares rays measured at least this far (a
-    # vehicle alongside hid 63 % of the structure rays at 2.5 m on the town_medium suite, and a far-off
-    # place fit those near rays better than the true one)
-    max_vetoed_updates: int = 30  # a suspicion lasting this many updates is lost all the same
-    probation_updates: int = 10  # after each convergence, a second opinion at this many updates ...
-    probation_hits: int = 2  # ... lost when it finds a better place this many times in a row
-    opinion_hits: int = 2  # a suspicion is lost when the second opinion finds a better place this many
-    # times in a row, each where the last one moved with the odometry (within separation_m)
-    opinion_max_misses: int = 2  # ... with at most this many updates without it in between
-    doubt_ratio: float = 0.8  # doubt_opinions: an update is in doubt when its inlier share is below this x
-    # its running level
+    """Share in [0, 1] by which a better place may fit the past worse than the filter's best particle and
+    still count as better."""
+    history_min_inliers: float = 0.5
+    """The look at the past is taken only while the filter's best particle still fits at least this share
+    of the far rays, in [0, 1]: below it the car rather jumped (a kidnap) than the street changed, and the
+    past would hold a true new place back."""
+    history_in_probation: bool = True
+    """Take the look at the past also in the probation after a convergence. The search chose its place on
+    those same past scans, so the past can favour a wrong convergence; without the look, though, a
+    correct convergence can be called lost by a look-alike soon after."""
+    history_skips_suspicion: bool = True
+    """The look at the past leaves out the scans of the current suspicion (its bad updates and the one
+    before them): a vehicle alongside that hides the far rays at the true pose would otherwise let a
+    distant place fit that past nearly as well."""
+    opinion_min_range_m: float = 5.0
+    """The second opinion compares only the rays measured at least this far, in m: near rays, above all
+    those on a vehicle alongside, fit some wall almost anywhere and let a far-off place fit better than the
+    true one."""
+    max_vetoed_updates: int = 30
+    """A suspicion lasting this many updates is lost all the same, so that a true place missing from the
+    prior cannot pin the filter to a wrong one for ever."""
+    probation_updates: int = 10
+    """After each convergence of a search, a second opinion at each of this many updates, suspicious or
+    not: a wrong convergence that fits nearly as well as the truth raises no signal. 0: no probation."""
+    probation_hits: int = 2
+    """Outside a suspicion (in the probation, or at updates in doubt): lost when the second opinion finds
+    a consistent better place this many times in a row."""
+    opinion_hits: int = 2
+    """In a suspicion: lost when the second opinion finds a better place this many times in a row, each
+    where the last one moved with the odometry (within `convergence.separation_m`)."""
+    opinion_max_misses: int = 2
+    """Updates without a better place that the count of confirmations survives in between (the rival moves
+    on with the odometry meanwhile); one more drops it."""
+    doubt_ratio: float = 0.8
+    """An update is in doubt when its inlier share is below this factor × its running level: such an
+    update is not refined and, with `doubt_opinions`, gets a second opinion."""
 
 
 @dataclass
 class RefineSettings:
-    enabled: bool = True  # align each converged update's rays to the mesh (rangemcl.localization.refine)
-    iterations: int = 5  # Gauss-Newton steps, each re-casting the rays
-    max_residual_m: float = 0.5  # a ray takes part when its range is within this of the map's surface
-    huber_m: float = 0.1  # Huber threshold of the point-to-plane residual
-    min_inliers: int = 30  # fewer rays taking part: no refinement
-    min_information: float = 10.0  # directions the scan constrains less than this are left alone
-    lever_m: float = 10.0  # yaw compared with translation at this distance
-    min_incidence: float = 0.2  # rays meeting their surface at |cos| below this (grazing) take no part
-    min_hit_height_m: float | None = 2.0  # rays hitting the map lower above the ground take no part
-    # (parked cars, people: they change between drives), unless too few hit higher; None: every ray
-    all_heights_updates: int = 10  # ... except in this many updates after a search declares convergence,
-    # when the cloud's place along a street may still be off by decimetres that only low surfaces fix
-    gate_m: float = 0.3  # a correction is taken when within this + 2 x the cloud's spread (x, y) ...
-    gate_deg: float = 1.0  # ... and this + 2 x the cloud's yaw spread; else refused and counted
-    weak_information: float | None = 25.0  # directions with information from min_information up to this
-    # move at most weak_step_m per update (a larger step along them is left out); None: no such band
-    # (revision 17; an 8-beam scan's few rays on one low surface pulled the pose 0.2 m along a street)
+    """Scan-to-mesh refinement of a converged filter's pose: point-to-plane Gauss-Newton of the update's
+    rays against the mesh, taken when it lies within the cloud's own spread
+    (`rangemcl.localization.refine`)."""
+
+    enabled: bool = True
+    """Align each converged update's rays to the mesh and move the cloud by the correction; false: the
+    pose is where the particles put it."""
+    iterations: int = 5
+    """Gauss-Newton steps at most, each re-casting the rays."""
+    max_residual_m: float = 0.5
+    """A ray takes part when its measured range is within this, in m, of the map's surface along it."""
+    huber_m: float = 0.1
+    """Huber threshold in m of the point-to-plane residual: larger residuals weigh less."""
+    min_inliers: int = 30
+    """Rays that must take part, at least (in rays); with fewer there is no refinement."""
+    min_information: float = 10.0
+    """Directions (in x, y and yaw scaled by `lever_m`) whose information, the sum of the rays' squared
+    unit Jacobians, is below this are left where the particles put them (such as along a street of
+    parallel walls)."""
+    lever_m: float = 10.0
+    """Distance in m at which yaw is compared with translation (the scan's typical range): a radian of yaw
+    counts as this many metres."""
+    min_incidence: float = 0.2
+    """Rays meeting their surface at an incidence |cos| below this (grazing) take no part; in [0, 1]."""
+    min_hit_height_m: float | None = 2.0
+    """Rays hitting the map lower than this, in m above the ground, take no part (parked cars and people
+    change between drives), unless fewer than `min_inliers` rays hit higher. `None`: every ray."""
+    all_heights_updates: int = 10
+    """Updates after a search declares convergence (or after an approximate start pose) in which rays of
+    every height take part: the cloud's place along a street may still be off by decimetres that only low
+    surfaces fix."""
+    gate_m: float = 0.3
+    """A correction is taken when its shift is within this, in m, plus twice the cloud's spread in x and y
+    (and its turn within `gate_deg`); else it is refused and counted."""
+    gate_deg: float = 1.0
+    """A correction's turn must be within this, in degrees, plus twice the cloud's yaw spread."""
+    weak_information: float | None = 25.0
+    """Directions with information from `min_information` up to this move at most `weak_step_m` per update
+    (a larger step along them is left out): a few rays on one low surface across a street, as an 8-beam
+    sensor sees it, would otherwise pull the pose along the street. `None`: no such band."""
     weak_step_m: float = 0.1
+    """Largest step in m (yaw scaled by `lever_m`) taken along a weakly constrained direction per update."""
 
 
 @dataclass
 class InitSettings:
-    drive_radius_m: float = 6.0  # with a map that keeps its mapping drive: spread within this of it
-    heading_sigma_deg: float = 15.0  # ... with yaw along the drive (either way) within this
-    uniform_yaw_share: float = 0.25  # share of particles with uniform yaw all the same
-    place_prior: bool = True  # draw particles from the place prior (rangemcl.localization.place_prior)
-    prior_share: float = 0.7  # share of a global spread drawn from the prior's best places (the rest
-    # uniform over the drivable area, so that no place is excluded)
-    prior_top: int = 300  # the prior's best (cell, yaw) candidates drawn from (at most 2 % of its cells)
-    prior_cell_m: float = 2.0  # the prior's grid
-    prior_yaw_sigma_deg: float = 2.0  # yaw spread around a candidate's aligned yaw
-    beam_prior: bool = True  # a scan with nothing in the prior's high band (the MQ-8) is matched with a
-    # prior of the sensor's own top beam instead of the low band (revision 10; place_prior module)
-    inject_share: float = 0.05  # while searching: fresh prior particles per update (of the cloud), at the
-    inject_top: int = 30  # prior's best places for that scan ...
-    inject_below_share: float = 0.9  # ... while no hypothesis holds this share of the weight (1: always;
-    # revision 8: 0.9, so that a look-alike re-injected every update no longer caps the test's margin
-    # once one hypothesis dominates: town_medium 24/25 against revision 7's 22/25, README)
-    inject_weight: float | None = None  # the injected particles' share of the weight (None: inject_share).
-    # It is the prior odds the search gives a place it has not tested yet, and while it is injected it caps
-    # the sequential test: a rival re-injected every update at weight w, fitting each scan rho times as
-    # well as the leader, holds about w / places / (1 - rho) of the weight (README, issue 13) ...
-    inject_held: bool = True  # ... False: fresh particles go only to places the search does not hold yet
-    # (no held particle within about convergence.cluster_m and 20 degrees). With 0.001 and False the cap
-    # is gone from the start (configs/search_no_cap.yaml), and on town_medium the MQ-8 then converged on
-    # wrong streets that its weak evidence favoured for a stretch (README); inject_below_share lifts the
-    # cap only once a hypothesis dominates
+    """Where global localization puts its particles: the drivable area, the place prior, and the fresh
+    prior particles injected while the search runs."""
+
+    drive_radius_m: float = 6.0
+    """With a map that keeps its mapping drive: particles are spread over the measured ground within this,
+    in m, of the drive, with yaw along it. 0 (or a map without a drive): all measured ground, uniform yaw."""
+    heading_sigma_deg: float = 15.0
+    """Standard deviation in degrees of the spread's yaw around the drive's heading (either way)."""
+    uniform_yaw_share: float = 0.25
+    """Share in [0, 1] of the spread's particles that get uniform yaw even where the drive gives a
+    heading."""
+    place_prior: bool = True
+    """Use the place prior (`rangemcl.localization.place_prior`): particles drawn where the scan's profile
+    fits and injected while searching; the recovery's second opinion needs it too."""
+    prior_share: float = 0.7
+    """Share in [0, 1] of a global spread redrawn at its first update from the prior's best places for
+    that scan; the rest stays uniform over the drivable area, so that no place is excluded."""
+    prior_top: int = 300
+    """The prior's best (cell, yaw) candidates that the first draw picks from (at most 2 % of its cells,
+    at least 20)."""
+    prior_cell_m: float = 2.0
+    """Grid spacing in m of the place prior over the drivable area; part of the stored prior's key, so a
+    new value renders a new prior."""
+    prior_yaw_sigma_deg: float = 2.0
+    """Yaw spread in degrees (normal) of particles drawn around a candidate's aligned yaw, here and in the
+    second opinion."""
+    beam_prior: bool = True
+    """A scan with nothing in the prior's high band (a sensor whose beams all point below the horizon,
+    such as an 8-beam one) is matched with a prior of the sensor's own top beam instead of the low band,
+    where parked cars hide the facades."""
+    inject_share: float = 0.05
+    """While searching: fresh particles drawn from the prior's best places for each update's scan, as a
+    share in [0, 1] of the cloud; 0: none."""
+    inject_top: int = 30
+    """The prior's best places for the scan that the fresh particles are drawn from (at most 2 % of its
+    cells, at least 20)."""
+    inject_below_share: float = 0.9
+    """Injection runs only while no hypothesis holds more than this share of the weight, in [0, 1]
+    (1: always), so that a look-alike re-injected at every update no longer caps the test once one
+    hypothesis dominates."""
+    inject_weight: float | None = None
+    """Share in [0, 1] of the weight the injected particles take together; `None`: `inject_share`. It is
+    the prior odds the search gives a place it has not tested yet, and while injected it caps the
+    sequential test: a rival re-injected every update at weight w, fitting each scan rho times as well as
+    the leader, holds about w / places / (1 − rho) of the weight."""
+    inject_held: bool = True
+    """False: fresh particles go only to places the search does not hold yet (no held particle within
+    about `convergence.cluster_m` and 20 degrees); with a tiny `inject_weight` that lifts the cap from the
+    start, but weak evidence can then converge on a wrong street that it favours for a stretch."""
 
 
 @dataclass
 class LocalizerSettings:
+    """The localizer's settings, the YAML of `rangemcl localize --config`: one section per part of the
+    filter, and the sensor's height and the map's memory budget."""
+
     particles: ParticleSettings = field(default_factory=ParticleSettings)
+    """Particle counts, resampling, roughening and the pose estimate."""
     motion: MotionSettings = field(default_factory=MotionSettings)
+    """The odometry motion model, when to update, and the odometry's online calibration."""
     observation: ObservationSettings = field(default_factory=ObservationSettings)
+    """The observation model and the rays cast per particle."""
     convergence: ConvergenceSettings = field(default_factory=ConvergenceSettings)
+    """When a global search has converged, and its hypotheses until then."""
     recovery: RecoverySettings = field(default_factory=RecoverySettings)
+    """When a converged filter is lost: the watch and the place prior's second opinion."""
     refine: RefineSettings = field(default_factory=RefineSettings)
+    """Scan-to-mesh refinement of the converged pose."""
     init: InitSettings = field(default_factory=InitSettings)
-    sensor_height_m: float | None = None  # mounting height; default: the sequence's sensor, else the map's
-    # MB of the map the localizer may hold (its tiles near the particles, rangemcl.mapping.view); default:
-    # the whole map when it takes under a quarter of the memory available, else that quarter
+    """Where a global search spreads its particles, and the place prior."""
+    sensor_height_m: float | None = None
+    """The sensor's mounting height in m above the ground: it places each particle's sensor over the map's
+    ground and splits road from structure. `None`: the sequence's sensor mount, else the map's metadata,
+    else 1.73 (KITTI)."""
     map_memory_mb: float | None = None
+    """Memory in MB that the localizer may hold of the map (its tiles near the particles,
+    `rangemcl.mapping.view`); `--map-memory` overrides it. `None`: the whole map when it takes under a
+    quarter of the memory available, else that quarter."""
 
     def check(self, where: str = "settings") -> None:
         """Range checks that the types alone do not give; an InputError names the key."""

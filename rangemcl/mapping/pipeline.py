@@ -46,60 +46,124 @@ MAX_PROJECTION_PIXELS = 1 << 24  # a range image of more pixels would not fit in
 
 @dataclass
 class ScanSettings:
-    min_range_m: float = 1.5  # drop returns this close (the car's own surroundings, spray)
-    max_range_m: float = 40.0  # the reference code crops scans to ±30 m; sparse far returns mesh badly
-    every_nth: int = 1  # use every n-th scan
-    max_edge_m: float = 1.0  # neighbour distance beyond which a pixel's normal is a depth edge
-    drop_dynamic_labels: bool = False  # simulator-only: drop points labelled as moving actors
-    deskew: bool = True  # with per-point firing times: place each point from the pose at its own time
+    """Which scans, and which of their points, go into the map, and how each point is placed."""
+
+    min_range_m: float = 1.5
+    """Returns closer than this, in m, are dropped (the car's own surroundings, spray)."""
+    max_range_m: float = 40.0
+    """Returns farther than this, in m, are dropped: sparse far returns mesh badly (the paper's reference
+    code crops scans to ±30 m). The localizer's `observation.max_range_m` should match it."""
+    every_nth: int = 1
+    """Use every n-th scan of the drive (1: all of them)."""
+    max_edge_m: float = 1.0
+    """Constant part, in m, of the depth-discontinuity limit between neighbouring range-image pixels: a
+    neighbour farther off (beyond this plus an allowance that grows with range) lies across an edge and
+    gives no normal. A point left without a normal is not meshed."""
+    drop_dynamic_labels: bool = False
+    """Drop the points labelled as moving actors (a non-zero `label` in the points' metadata, which only
+    simulator recordings have)."""
+    deskew: bool = True
+    """With per-point firing times: place each point from the pose interpolated at its own firing time,
+    not the scan's stamp."""
 
 
 @dataclass
 class GroundSettings:
-    max_angle_deg: float = 30.0  # n · e3 > cos(30°)
-    z_margin_m: float = 1.0  # ground below z = −sensor height + margin (sensor frame)
-    sensor_height_m: float | None = None  # default: the sequence's sensor mount, else 1.73
+    """Which points of each scan are ground (the paper's rule); the ground part of the mesh is simplified
+    later (`simplify`)."""
+
+    max_angle_deg: float = 30.0
+    """A point is ground only when its normal lies within this angle, in degrees, of the scan's
+    ground-plane normal e3 (|n · e3| > cos of it); below 90."""
+    z_margin_m: float = 1.0
+    """A ground point's height along e3 in the sensor frame must lie below −(sensor height) + this margin,
+    in m."""
+    sensor_height_m: float | None = None
+    """The sensor's height in m above the ground, for the ground test; it is also stored in the map's
+    metadata, where the localizer finds it. `None`: the sequence's sensor mount, else 1.73 (KITTI)."""
 
 
 @dataclass
-class ProjectionSettings:  # for sequences without our sensor spec (e.g. KITTI): a paper Eq. 1 grid
+class ProjectionSettings:
+    """The range-image grid (the paper's Eq. 1 projection) in which the normals of sequences without a
+    sensor description of their own (e.g. KITTI) are computed."""
+
     height: int = 64
+    """Rows of the range image, spread evenly over the vertical field of view."""
     width: int = 2048
+    """Columns of the range image, spread evenly over 360 degrees of azimuth."""
     fov_up_deg: float = 3.0
+    """Upper edge of the vertical field of view, in degrees of elevation (positive up)."""
     fov_down_deg: float = -25.0
+    """Lower edge of the vertical field of view, in degrees of elevation; below `fov_up_deg`."""
 
 
 @dataclass
 class PoissonSettings:
+    """Each tile's screened Poisson reconstruction, and the trimming of the surface it invents away from
+    the data (`rangemcl.mapping.poisson`)."""
+
     depth: int = 9
+    """Octree depth, 1 to 16: the finest cell is about the points' extent / 2^depth (about 0.2 m for a
+    100 m tile at depth 9); one more level halves it and costs markedly more time and memory."""
     density_quantile: float = 0.1
+    """Share in [0, 1) of the mesh's vertices, those of the lowest Poisson density, that are removed: it
+    always removes that share, invented surface or not. 0 keeps all."""
     max_support_m: float = 0.5
-    voxel_m: float = 0.1  # points per tile are thinned to one per voxel before reconstruction
+    """Triangles with a vertex farther than this, in m, from every input point are removed (surface that
+    Poisson invented away from the data)."""
+    voxel_m: float = 0.1
+    """Each tile's points are thinned to one per voxel of this size, in m, before reconstruction (the
+    earliest scan's point wins), so that memory follows the surface, not how often the drive passed."""
 
 
 @dataclass
 class SimplifySettings:
+    """Simplification of the ground part of each tile's mesh (vertex clustering and smoothing): flat road
+    needs few triangles."""
+
     enabled: bool = True
+    """Simplify the ground triangles; false: keep Poisson's resolution everywhere."""
     voxel_m: float = 1.0
+    """Side in m of the cells in which ground vertices are merged (vertex clustering)."""
     smooth_iterations: int = 1
+    """Rounds of the ground smoothing (paper Eq. 3) after merging; 0 skips it."""
 
 
 @dataclass
 class TileSettings:
+    """How the map is cut into square tiles, each reconstructed as a job of its own."""
+
     size_m: float = 100.0
+    """Edge length in m of the square map tiles; the map is built, stored and (within a memory budget)
+    loaded by the localizer tile by tile."""
     margin_m: float = 10.0
-    coarse_ratio: float = COARSE_RATIO  # the coarse level keeps this share of each tile's triangles (0: none)
+    """Points within this distance, in m, beyond a tile's border take part in its reconstruction, which is
+    then cropped to the tile, so that neighbouring tiles meet where the surface continues."""
+    coarse_ratio: float = COARSE_RATIO
+    """Share in [0, 1] of each tile's triangles kept in its coarse level, which a localizer within a memory
+    budget holds for the farther tiles; 0: no coarse level."""
 
 
 @dataclass
 class MapSettings:
+    """The map builder's settings, the YAML of `rangemcl build-map --config`: one section per stage, and
+    the number of parallel tile jobs."""
+
     scans: ScanSettings = field(default_factory=ScanSettings)
+    """Which scans and points go into the map."""
     ground: GroundSettings = field(default_factory=GroundSettings)
+    """How ground points are labelled."""
     projection: ProjectionSettings = field(default_factory=ProjectionSettings)
+    """The range-image grid of sequences without a sensor description."""
     poisson: PoissonSettings = field(default_factory=PoissonSettings)
+    """Each tile's Poisson reconstruction and trimming."""
     simplify: SimplifySettings = field(default_factory=SimplifySettings)
+    """Simplification of the ground mesh."""
     tiles: TileSettings = field(default_factory=TileSettings)
-    workers: int = 0  # tile jobs in parallel (0 = all cores)
+    """The tiles' size, margin and coarse level."""
+    workers: int = 0
+    """Tile jobs run in parallel (processes, or the CPUs of a local Ray instance); 0: all cores."""
 
     def check(self, where: str = "settings") -> None:
         """Range checks that the types alone do not give, before any work; an InputError names the key."""
