@@ -623,7 +623,7 @@ def _build(
     if backend == "ray":
         from rangemcl.mapping.raybuild import run_tiles
 
-        ran = run_tiles(todo, write_tile, work_dir=work, workers=workers, address=address)
+        ran = run_tiles(todo, mesh_tile, write_tile, work_dir=work, workers=workers, address=address)
         for s in _progress(ran, progress, "tiles", total=len(todo)):
             ray_peaks.append(s.get("peak_rss_mb", 0.0))
             kill_point("tiles")

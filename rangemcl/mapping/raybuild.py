@@ -49,13 +49,11 @@ class ChunkReader:
         return p.read_bytes()
 
 
-def tile_task(job, driver_node: str, reader, via_reader: bool = False):
-    """A Ray task: the mesh of one tile, ``(vertices, faces, is_ground, stats)``; the stats carry the
-    worker's peak memory (``peak_rss_mb``). ``via_reader`` makes a task on the driver's node fetch its
-    chunks as a remote node's would (tests)."""
+def tile_task(mesh_tile: Callable, job, driver_node: str, reader, via_reader: bool = False):
+    """A Ray task: the mesh of one tile, ``mesh_tile(job, sources) -> (vertices, faces, is_ground,
+    stats)``; the stats carry the worker's peak memory (``peak_rss_mb``). ``via_reader`` makes a task on
+    the driver's node fetch its chunks as a remote node's would (tests)."""
     import ray
-
-    from rangemcl.mapping.pipeline import mesh_tile
 
     if via_reader or ray.get_runtime_context().get_node_id() != driver_node:
         sources = (io.BytesIO(ray.get(reader.read.remote(str(p)))) for p in job.chunks)
@@ -68,6 +66,7 @@ def tile_task(job, driver_node: str, reader, via_reader: bool = False):
 
 def run_tiles(
     jobs: list,
+    mesh_tile: Callable,
     write: Callable,
     *,
     work_dir: Path,
@@ -75,8 +74,9 @@ def run_tiles(
     address: str | None = None,
     via_reader: bool = False,
 ) -> Iterator[dict]:
-    """Build ``jobs`` (``TileJob``) as Ray tasks and ``write(job, v, f, is_ground, stats)`` each result as it
-    arrives; yields the written stats. ``address`` None starts a local instance of ``workers`` CPUs (and
+    """Build ``jobs`` (``TileJob``) as Ray tasks, each ``mesh_tile(job, sources)`` (the builder's tile job, a
+    module-level function that the workers import), and ``write(job, v, f, is_ground, stats)`` each result
+    as it arrives; yields the written stats. ``address`` None starts a local instance of ``workers`` CPUs (and
     shuts it down afterwards); otherwise the tasks go to that cluster (``"auto"``: the one this machine
     belongs to). An interruption cancels the tasks not finished."""
     if not jobs:
@@ -88,7 +88,9 @@ def run_tiles(
         watchdog = stack.enter_context(descendants_die_with_me()) if started else None
         if watchdog is not None and address is None:
             stack.enter_context(_owner_mark(watchdog))
-        yield from _run(ray, jobs, write, work_dir, workers, address, via_reader, started, watchdog)
+        yield from _run(
+            ray, jobs, mesh_tile, write, work_dir, workers, address, via_reader, started, watchdog
+        )
 
 
 @contextlib.contextmanager
@@ -105,7 +107,7 @@ def _owner_mark(watchdog) -> Iterator[None]:
         os.environ.pop(_OWNER_VAR, None)
 
 
-def _run(ray, jobs, write, work_dir, workers, address, via_reader, started, watchdog):
+def _run(ray, jobs, mesh_tile, write, work_dir, workers, address, via_reader, started, watchdog):
     from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
     if started:
@@ -132,7 +134,7 @@ def _run(ray, jobs, write, work_dir, workers, address, via_reader, started, watc
             .remote(str(work_dir))
         )
         task = ray.remote(num_cpus=1, max_calls=1)(tile_task)
-        by_ref = {task.remote(j, here, reader, via_reader): j for j in jobs}
+        by_ref = {task.remote(mesh_tile, j, here, reader, via_reader): j for j in jobs}
         pending = list(by_ref)
         while pending:
             ready, pending = ray.wait(pending, num_returns=1)
