@@ -2,22 +2,61 @@
 attributes and methods whatever it was read from (a KITTI-layout folder, a ROS 1 or ROS 2 bag, an MCAP
 file), so the localizer and the map builder do not know where their frames came from.
 
-What every source has (see :class:`rangemcl.dataset.Sequence`): ``root``, ``meta``, ``calib_Tr``,
-``calib_source``, ``poses``, ``odometry`` (``(N, 4, 4)`` LiDAR poses or None), ``times`` (``(N,)``),
-``imu_roll_pitch`` (``(N, 2)``), ``len()``, ``scan(i)``, ``scan_with_intensity(i)``, ``point_meta(i)`` and
-``scan_paths`` (one name per scan, for resume fingerprints).
+What every source has is :class:`FrameSource` (the KITTI folder's :class:`rangemcl.dataset.Sequence`,
+the bags' :class:`rangemcl.ros.bag.BagSequence`, the scan folders'
+:class:`rangemcl.scanfolder.ScanFolderSequence`).
 """
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
 
 from rangemcl.dataset import Sequence, load_sequence
 from rangemcl.errors import InputError
 
 
-def open_source(path: str | os.PathLike, *, require_poses: bool = False, bag_options=None):
+@runtime_checkable
+class FrameSource(Protocol):
+    """A recording as the localizer and the map builder read it, whatever it was read from.
+
+    Poses are LiDAR poses in the world, ``(N, 4, 4)`` float64, or None where the recording has none;
+    ``calib_Tr`` maps the sensor frame into the frame of the recording's poses files (identity for bags and
+    our own drives); ``calib_source`` says where it came from. Scans are read when asked for."""
+
+    root: Path  # where it was read from
+    meta: dict[str, Any]  # the recording's metadata (sensor spec, scene, seed, ...; may be empty)
+    calib_Tr: np.ndarray  # (4, 4)
+    calib_source: str
+    poses: np.ndarray | None  # (N, 4, 4) ground truth, if known
+    odometry: np.ndarray | None  # (N, 4, 4) the odometry the car measured, if any
+    times: np.ndarray | None  # (N,) seconds: each scan's end of sweep
+    imu_roll_pitch: np.ndarray | None  # (N, 2) radians, from an IMU, if any
+
+    def __len__(self) -> int: ...
+
+    @property
+    def scan_paths(self) -> list:
+        """One name per scan (files, or a bag's message indices): resume fingerprints compare them."""
+        ...
+
+    def scan(self, i: int) -> np.ndarray:
+        """Scan ``i``: ``(M, 3)`` float32 points in the sensor frame."""
+        ...
+
+    def scan_with_intensity(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """Scan ``i`` and its ``(M,)`` float32 intensities (zeros where the recording has none)."""
+        ...
+
+    def point_meta(self, i: int) -> dict[str, np.ndarray]:
+        """Per-point fields of scan ``i`` the recording has (``ring``, ``column``, ``time_s``, ``label``)."""
+        ...
+
+
+def open_source(path: str | os.PathLike, *, require_poses: bool = False, bag_options=None) -> FrameSource:
     """The recording at ``path`` as a sequence: a folder with ``velodyne/`` (KITTI layout), a bag
     (``.bag``, ``.mcap``, ``.db3`` or a ROS 2 bag folder, read with ``bag_options``, a
     :class:`rangemcl.ros.bag.BagOptions`), or a folder of ``.pcd``/``.ply`` scans
@@ -47,4 +86,4 @@ def _bag_only(options) -> bool:
     )
 
 
-__all__ = ["Sequence", "open_source"]
+__all__ = ["FrameSource", "Sequence", "open_source"]

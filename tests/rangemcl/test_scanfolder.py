@@ -66,3 +66,33 @@ def test_times_file_and_bad_scans(tmp_path):
     assert "\n" not in str(err.value)
     with pytest.raises(InputError, match="no poses"):
         open_source(tmp_path, require_poses=True)
+
+
+def test_every_reader_is_a_frame_source(tmp_path):
+    """The KITTI folder, a scan folder and a bag all give what :class:`rangemcl.sources.FrameSource`
+    promises (attributes and methods), through the one way in, ``open_source``."""
+    pytest.importorskip("rosbags")
+    from rangemcl.convert import convert
+    from rangemcl.dataset import SequenceWriter
+    from rangemcl.sources import FrameSource, open_source
+
+    kitti = tmp_path / "kitti"
+    with SequenceWriter(kitti) as w:
+        for k in range(3):
+            w.add_frame(np.ones((10, 3), np.float32) * (k + 1), pose=np.eye(4), time_s=0.1 * k)
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    for k in range(3):
+        write_cloud(folder / f"{k:03d}.pcd", np.ones((10, 3)) * (k + 1))
+    convert(kitti, tmp_path / "drive.bag", "rosbag1")
+    for path in (kitti, folder, tmp_path / "drive.bag"):
+        seq = open_source(path)
+        assert isinstance(seq, FrameSource), path
+        assert len(seq) == 3 and len(seq.scan_paths) == 3
+        points, intensity = seq.scan_with_intensity(1)
+        assert points.dtype == np.float32 and points.shape[1] == 3 and len(intensity) == len(points)
+        assert np.array_equal(seq.scan(1), points) and isinstance(seq.point_meta(1), dict)
+        assert seq.calib_Tr.shape == (4, 4) and isinstance(seq.calib_source, str)
+        close = getattr(seq, "close", None)
+        if close is not None:
+            close()
