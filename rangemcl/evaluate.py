@@ -30,7 +30,7 @@ import numpy as np
 
 from rangemcl.dataset import read_poses_txt
 from rangemcl.errors import InputError
-from rangemcl.se2 import pose2d, wrap_angle
+from rangemcl.se2 import wrap_angle, xyyaw_of
 
 
 def pose_errors(estimate_xyyaw: np.ndarray, truth_xyyaw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -174,11 +174,6 @@ def convergence_events(
         "false_alarms": alarms,
         "false_alarms_count": len(alarms),
     }
-
-
-def xyyaw_of(poses: np.ndarray) -> np.ndarray:
-    """``(N, 3)`` x, y, yaw of ``(N, 4, 4)`` poses (:func:`rangemcl.se2.pose2d` of each)."""
-    return np.array([pose2d(T) for T in np.asarray(poses, np.float64)]).reshape(-1, 3)
 
 
 def evaluate_results(results_dir, gt_path, *, check_every: int = 100, success_m: float = 5.0) -> dict:

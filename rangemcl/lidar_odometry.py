@@ -34,7 +34,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from rangemcl.errors import InputError
-from rangemcl.se2 import pose2d, pose_matrix, rotation_roll_pitch, wrap_angle, yaw_matrix
+from rangemcl.se2 import pose2d, pose_matrix, rotation_roll_pitch, wrap_angle, yaw_matrix, yaw_of
 
 __all__ = [
     "DEFAULT_MAX_RANGE_M",
@@ -292,10 +292,6 @@ def _rotation_angle(R: np.ndarray) -> np.ndarray:
     return np.arccos(np.clip(c, -1.0, 1.0))
 
 
-def _yaw(T: np.ndarray) -> float:
-    return math.atan2(T[1, 0], T[0, 0])
-
-
 def odometry_drift(
     odometry: np.ndarray,
     truth: np.ndarray,
@@ -374,5 +370,5 @@ def odometry_drift(
         "segments": segments,
         "final_error_m": final_error_m,
         "final_drift_pct": 100 * final_error_m / distance_m if distance_m > 0 else None,
-        "final_yaw_err_deg": math.degrees(float(wrap_angle(_yaw(aligned_end) - _yaw(gt[-1])))),
+        "final_yaw_err_deg": math.degrees(float(wrap_angle(yaw_of(aligned_end) - yaw_of(gt[-1])))),
     }

@@ -44,7 +44,7 @@ from rangemcl.checkpoint import restore_state, save_state
 from rangemcl.config import write_config
 from rangemcl.dataset import Sequence, poses_to_tum, write_poses_txt
 from rangemcl.errors import InputError
-from rangemcl.evaluate import localization_metrics, shift_event_frames, xyyaw_of
+from rangemcl.evaluate import localization_metrics, shift_event_frames
 from rangemcl.mapping.meshmap import MeshMap
 from rangemcl.mcl import (
     LocalizerSettings,
@@ -53,6 +53,7 @@ from rangemcl.mcl import (
     rotation_roll_pitch,
     se2_between,
 )
+from rangemcl.se2 import xyyaw_of
 from rangemcl.sources import open_source
 from rangemcl.viz import RunViewer, check_rrd_path, rerun_module
 

@@ -30,7 +30,7 @@ import warp as wp
 
 from rangemcl.errors import InputError
 from rangemcl.heap import trim_freed_memory
-from rangemcl.transforms import invert_rigid, quat_from_matrix
+from rangemcl.se2 import invert_rigid, quat_from_matrix
 
 wp.config.log_level = wp.LOG_ERROR  # no banner, no missing-driver notice on CPU machines
 wp.set_module_options({"enable_backward": False})

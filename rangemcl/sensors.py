@@ -37,6 +37,7 @@ import numpy as np
 import yaml
 
 from rangemcl.errors import InputError
+from rangemcl.se2 import transform_from_xyz_rpy, xyz_rpy_from_transform
 from rangemcl.yamlio import parse_yaml, read_text
 
 DEFAULT_MOUNT_XYZ_M = (0.0, 0.0, 1.73)
@@ -236,32 +237,6 @@ class LidarSpec:
 
 
 # --- mount <-> transform -----------------------------------------------------------------------------
-
-
-def transform_from_xyz_rpy(xyz_m: Any, rpy_deg: Any) -> np.ndarray:
-    """4x4 transform with translation ``xyz_m`` and rotation ``Rz(yaw) @ Ry(pitch) @ Rx(roll)``."""
-    cr, cp, cy = np.cos(np.radians(rpy_deg))
-    sr, sp, sy = np.sin(np.radians(rpy_deg))
-    T = np.eye(4)
-    T[:3, :3] = [
-        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-        [-sp, cp * sr, cp * cr],
-    ]
-    T[:3, 3] = xyz_m
-    return T
-
-
-def xyz_rpy_from_transform(T: np.ndarray) -> tuple[list[float], list[float]]:
-    """Inverse of :func:`transform_from_xyz_rpy`: (xyz_m, rpy_deg) as lists of floats."""
-    R = T[:3, :3]
-    cos_pitch = math.hypot(R[0, 0], R[1, 0])
-    pitch = math.atan2(-R[2, 0], cos_pitch)
-    if cos_pitch > 1e-9:
-        roll, yaw = math.atan2(R[2, 1], R[2, 2]), math.atan2(R[1, 0], R[0, 0])
-    else:  # gimbal lock: only roll - yaw (or roll + yaw) is defined; put it all in roll
-        roll, yaw = math.atan2(-R[1, 2], R[1, 1]), 0.0
-    return [float(v) for v in T[:3, 3]], [math.degrees(a) for a in (roll, pitch, yaw)]
 
 
 # --- YAML schema and loader --------------------------------------------------------------------------

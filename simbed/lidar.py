@@ -19,8 +19,8 @@ import numpy as np
 
 from rangemcl.rangeimage import RangeImageGeometry
 from rangemcl.raycast import RayCaster
+from rangemcl.se2 import interpolate_poses
 from rangemcl.sensors import LidarSpec
-from rangemcl.transforms import interpolate_poses
 
 LABEL_STATIC = 0
 LABEL_ACTOR = 1

@@ -52,7 +52,7 @@ from PIL import Image
 
 from rangemcl.errors import InputError
 from rangemcl.outdir import check_output_files
-from rangemcl.se2 import wrap_angle
+from rangemcl.se2 import quat_wxyz_from_ypr, wrap_angle
 
 CAR_XML = Path(__file__).resolve().parents[1] / "scenes" / "car.xml"
 
@@ -538,21 +538,8 @@ class TownInfo:
         z = float(self.ground_height(x, y))
         pitch = -math.atan2((h[2] + h[3] - h[0] - h[1]) / 2, 2.7)  # nose up on an uphill road
         roll = math.atan2((h[0] + h[2] - h[1] - h[3]) / 2, 1.6)  # left side up where the ground is higher
-        q = _quat_wxyz(yaw, pitch, roll)
+        q = quat_wxyz_from_ypr(yaw, pitch, roll)
         return np.array([x, y, z, *q])
-
-
-def _quat_wxyz(yaw: float, pitch: float = 0.0, roll: float = 0.0) -> tuple[float, float, float, float]:
-    """Quaternion (w, x, y, z) of Rz(yaw) @ Ry(pitch) @ Rx(roll)."""
-    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
-    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
-    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
-    return (
-        cy * cp * cr + sy * sp * sr,
-        cy * cp * sr - sy * sp * cr,
-        cy * sp * cr + sy * cp * sr,
-        sy * cp * cr - cy * sp * sr,
-    )
 
 
 # ------------------------------------------------------------------------------------------------ geometry
@@ -1134,7 +1121,7 @@ def _v(*vals: float, nd: int = 4) -> str:
 
 def _quat(yaw: float, pitch: float = 0.0) -> str:
     """Quaternion (w x y z) of Rz(yaw) @ Ry(pitch), as MJCF text."""
-    return _v(*_quat_wxyz(yaw, pitch), nd=6)
+    return _v(*quat_wxyz_from_ypr(yaw, pitch), nd=6)
 
 
 def _style_note(style: TownStyle) -> str:

@@ -94,7 +94,7 @@ def _write_with_mcap_ros2(folder_path, out, *, odom_imu: bool = False) -> None:
     from rosbags.typesys import Stores, get_typestore
 
     from rangemcl.ros.bag import stamp_ns
-    from rangemcl.transforms import quat_from_matrix
+    from rangemcl.se2 import quat_from_matrix
 
     ts = get_typestore(Stores.ROS2_HUMBLE)
 

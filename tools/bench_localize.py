@@ -78,10 +78,10 @@ def main() -> None:
     import open3d as o3d
 
     from rangemcl.dataset import load_sequence
-    from rangemcl.evaluate import xyyaw_of
     from rangemcl.localize import frame_period
     from rangemcl.mapping.meshmap import MeshMap
     from rangemcl.mcl import LocalizerSettings, build_localizer, prepare_rays, se2_between
+    from rangemcl.se2 import xyyaw_of
 
     seq = load_sequence(args.seq)
     mesh_map = MeshMap.load(args.map)

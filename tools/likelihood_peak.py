@@ -44,11 +44,10 @@ def run() -> None:
 
     from rangemcl.dataset import load_sequence
     from rangemcl.errors import InputError
-    from rangemcl.evaluate import xyyaw_of
     from rangemcl.localize import odometry_xyyaw, resolve_sensor_height
     from rangemcl.mapping.view import open_map
     from rangemcl.mcl import LocalizerSettings, build_localizer
-    from rangemcl.se2 import se2_between
+    from rangemcl.se2 import se2_between, xyyaw_of
 
     seq = load_sequence(args.seq)
     if seq.poses is None:

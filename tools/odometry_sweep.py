@@ -51,8 +51,7 @@ def _calibration(run: Path, seq, frames: np.ndarray, scale: float, bias_deg_s: f
     scale that maps its distance onto the true distance, the bias that maps its yaw change onto the true
     one (over the frames run), and the distance driven until the estimates came within 0.3 % and
     0.05 deg/s of them for good."""
-    from rangemcl.evaluate import xyyaw_of
-    from rangemcl.se2 import se2_between
+    from rangemcl.se2 import se2_between, xyyaw_of
 
     cols = (run / "frames.csv").read_text().splitlines()[0].split(",")
     if "odometry_scale" not in cols:
@@ -145,9 +144,10 @@ def main() -> None:
 
     from rangemcl.config import load_config
     from rangemcl.dataset import load_sequence, perturb_odometry, write_poses_txt
-    from rangemcl.evaluate import pose_errors, track_errors, xyyaw_of
+    from rangemcl.evaluate import pose_errors, track_errors
     from rangemcl.localize import RunOptions, localize_sequence
     from rangemcl.mcl import LocalizerSettings
+    from rangemcl.se2 import xyyaw_of
 
     seq = load_sequence(args.seq, require_poses=True)
     if seq.odometry is None or seq.times is None:

@@ -62,7 +62,6 @@ def run() -> None:
 
     from rangemcl.dataset import load_sequence
     from rangemcl.errors import InputError
-    from rangemcl.evaluate import xyyaw_of
     from rangemcl.localization.place_prior import (
         circular_distance_deg,
         elevations_deg,
@@ -72,7 +71,7 @@ def run() -> None:
     from rangemcl.localize import odometry_xyyaw, resolve_sensor_height
     from rangemcl.mapping.view import open_map
     from rangemcl.mcl import LocalizerSettings, build_localizer
-    from rangemcl.se2 import rotation_roll_pitch, se2_between
+    from rangemcl.se2 import rotation_roll_pitch, se2_between, xyyaw_of
 
     seq = load_sequence(args.seq)
     mesh_map, caster = open_map(args.map, args.map_memory)

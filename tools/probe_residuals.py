@@ -41,10 +41,10 @@ def main() -> None:
     from rangemcl.config import load_config
     from rangemcl.dataset import load_sequence
     from rangemcl.errors import InputError
-    from rangemcl.evaluate import xyyaw_of
     from rangemcl.localize import frame_period, odometry_xyyaw, resolve_sensor_height
     from rangemcl.mapping.meshmap import MeshMap
     from rangemcl.mcl import LocalizerSettings, build_localizer, prepare_rays, se2_between
+    from rangemcl.se2 import xyyaw_of
 
     seq = load_sequence(a.seq, require_poses=True)
     settings = load_config(LocalizerSettings, a.config)

@@ -47,11 +47,10 @@ def run() -> None:
     from rangemcl.config import load_config
     from rangemcl.dataset import load_sequence
     from rangemcl.errors import InputError
-    from rangemcl.evaluate import xyyaw_of
     from rangemcl.localize import frame_period, odometry_xyyaw, resolve_sensor_height
     from rangemcl.mapping.view import open_map
     from rangemcl.mcl import LocalizerSettings, build_localizer
-    from rangemcl.se2 import se2_between, wrap_angle
+    from rangemcl.se2 import se2_between, wrap_angle, xyyaw_of
 
     seq = load_sequence(args.seq)
     if seq.poses is None:

@@ -34,9 +34,9 @@ from rangemcl.mapping.poisson import poisson_mesh, transfer_labels
 from rangemcl.mapping.simplify import simplify_ground
 from rangemcl.pool import kill_point, process_pool
 from rangemcl.rangeimage import RangeImageGeometry
+from rangemcl.se2 import interpolate_poses
 from rangemcl.sensors import spec_from_dict
 from rangemcl.sources import open_source
-from rangemcl.transforms import interpolate_poses
 
 # ---------------------------------------------------------------------------------------------- settings
 

@@ -45,7 +45,7 @@ import yaml
 
 from rangemcl.errors import InputError
 from rangemcl.ros import pointcloud2 as pc2
-from rangemcl.transforms import interpolate_poses, invert_rigid, matrix_from_quat, quat_from_matrix
+from rangemcl.se2 import interpolate_poses, invert_rigid, matrix_from_quat, quat_from_matrix
 
 FORMATS = ("mcap", "rosbag2", "rosbag1")
 INSTALL = "pip install 'simbed-rangemcl[ros]'"
@@ -487,7 +487,7 @@ def sensor_to_base_transform(values) -> np.ndarray:
         raise InputError(
             f"--sensor-to-base {values}: expected 6 finite numbers x,y,z,roll,pitch,yaw (m, deg)"
         )
-    from rangemcl.sensors import transform_from_xyz_rpy
+    from rangemcl.se2 import transform_from_xyz_rpy
 
     return transform_from_xyz_rpy(v[:3], v[3:])
 
@@ -787,7 +787,7 @@ def _open(reader, root: Path, opt: BagOptions, require_poses: bool) -> BagSequen
                     f"{root}: no static transform from {base} to the scans' frame {frame_id!r} "
                     f"(TF frames: {', '.join(frames) or 'none'}); give --sensor-to-base x,y,z,roll,pitch,yaw"
                 )
-    from rangemcl.sensors import xyz_rpy_from_transform
+    from rangemcl.se2 import xyz_rpy_from_transform
 
     xyz, rpy = xyz_rpy_from_transform(T_base_sensor)
     seq.meta["sensor_to_base"] = {"xyz_m": xyz, "rpy_deg": rpy, "source": mount_source}

@@ -68,8 +68,7 @@ def test_track_errors_split_the_offset_along_and_across_the_true_heading():
 
 def test_perturbed_odometry_scales_distance_and_adds_the_gyro_bias():
     from rangemcl.dataset import perturb_odometry
-    from rangemcl.evaluate import xyyaw_of
-    from rangemcl.se2 import pose_matrix, yaw_matrix
+    from rangemcl.se2 import pose_matrix, xyyaw_of, yaw_matrix
 
     # a drive along a circle of 20 m radius at 5 m/s, 10 Hz, on a slope (z rises, pitch kept)
     t = np.arange(200) * 0.1
