@@ -369,15 +369,15 @@ class MeshMap:
         return map_dir
 
     @classmethod
-    def load(cls, map_dir) -> MeshMap:
-        """Read a map folder written by :meth:`save` (format 2) or by the builders before issue 17
-        (format 1); any problem is an InputError naming the file."""
+    def load(cls, map_dir, *, opened: tuple | None = None) -> MeshMap:
+        """Read a map folder written by :meth:`save` (format 2) or by the builders of format 1; any problem
+        is an InputError naming the file. ``opened``: what :func:`open_map_folder` gave for it (read
+        once per run)."""
         map_dir = Path(map_dir)
-        version, doc = read_map_yaml(map_dir)
+        version, doc, store = opened if opened is not None else open_map_folder(map_dir)
         counts, meta = doc["counts"], doc["meta"]
         if version == 1:
             return cls._load_v1(map_dir, counts, meta)
-        store = open_checked_store(map_dir, counts)
         v, f, g, face_tile = store.read_all()
         ground, drive = read_ground_and_drive(map_dir, doc)
         return cls(
@@ -485,6 +485,16 @@ def read_map_yaml(map_dir: Path) -> tuple[int, dict]:
         raise InputError(f"{ypath}: 'meta' must be a mapping")
     doc["meta"] = meta
     return int(version), doc
+
+
+def open_map_folder(map_dir) -> tuple[int, dict, Any]:
+    """``(format_version, map.yaml's document, tile index)`` of a map folder, each checked (the index,
+    a :class:`~rangemcl.mapping.store.TileStore`, against map.yaml's counts; None for format 1): what
+    :meth:`MeshMap.load` and :class:`rangemcl.mapping.view.MapView` start from, read once."""
+    map_dir = Path(map_dir)
+    version, doc = read_map_yaml(map_dir)
+    store = open_checked_store(map_dir, doc["counts"]) if version >= 2 else None
+    return version, doc, store
 
 
 def open_checked_store(map_dir: Path, counts: dict):

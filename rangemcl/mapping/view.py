@@ -54,8 +54,7 @@ import numpy as np
 from rangemcl.errors import InputError
 from rangemcl.heap import return_freed_memory
 from rangemcl.mapping.cache import TileCache, caster_tiles, tile_distances
-from rangemcl.mapping.meshmap import read_ground_and_drive, read_map_yaml, tile_keys
-from rangemcl.mapping.store import TileStore
+from rangemcl.mapping.meshmap import open_map_folder, read_ground_and_drive, tile_keys
 
 # What the localizer holds of a whole map (MeshMap + one BVH) per triangle: town_large's 6.7 M triangles
 # took 1.10 GB in `rangemcl localize` (README, performance)
@@ -97,14 +96,15 @@ def open_map(map_dir, memory_mb: float | None = None, *, device: str = "cpu", th
     from rangemcl.raycast import RayCaster
 
     map_dir = Path(map_dir)
+    opened = open_map_folder(map_dir)  # map.yaml and the tile index, read once
     if memory_mb is None:
-        version, _doc = read_map_yaml(map_dir)
+        version, _doc, store = opened
         quarter = available_memory_bytes() / 4
-        if version < 2 or TileStore.open(map_dir).n_triangles * WHOLE_MAP_BYTES_PER_TRIANGLE <= quarter:
-            return MeshMap.load(map_dir), None
+        if version < 2 or store.n_triangles * WHOLE_MAP_BYTES_PER_TRIANGLE <= quarter:
+            return MeshMap.load(map_dir, opened=opened), None
         memory_mb = quarter / 1e6
     caster = RayCaster(device, threads)
-    return MapView(map_dir, memory_mb, caster), caster
+    return MapView(map_dir, memory_mb, caster, opened=opened), caster
 
 
 class MapView:
@@ -129,9 +129,10 @@ class MapView:
         background: bool = True,
         prefetch_m: float = 20.0,
         coarse: bool = True,
+        opened: tuple | None = None,
     ):
         map_dir = Path(map_dir)
-        version, doc = read_map_yaml(map_dir)
+        version, doc, store = opened if opened is not None else open_map_folder(map_dir)
         if version < 2:
             raise InputError(
                 f"{map_dir}: a map of format {version} is read whole; to bound its memory (--map-memory) "
@@ -143,7 +144,7 @@ class MapView:
         self.source_dir = map_dir
         self.format_version = version
         self.meta = doc["meta"]
-        self.store = TileStore.open(map_dir)
+        self.store = store
         self.ground, self.drive_xy = read_ground_and_drive(map_dir, doc)
         self.tiles = self.store.tiles
         self.tile_size_m = self.store.tile_size_m
