@@ -532,9 +532,10 @@ def map_info(map_dir: Path = typer.Argument(..., help="A map folder.")) -> None:
 
 @app.command("map-upgrade")
 def map_upgrade(map_dir: Path = typer.Argument(..., help="A map folder.")) -> None:
-    """Rewrite a map folder of format 1 (mesh.ply + tiles.npz, before issue 17) as format 2 (a mesh file per
-    tile, its coarse level and an index), in place. The tiles and the index are written first and map.yaml
-    last: a run stopped part-way leaves the format-1 map as it was, and running it again finishes."""
+    """Rewrite a map folder of the older format 1 (one mesh file: mesh.ply + tiles.npz) as format 2 (a mesh
+    file per tile, its coarse level and an index), in place. The tiles and the index are written first and
+    map.yaml last: a run stopped part-way leaves the format-1 map as it was, and running it again
+    finishes."""
     from rangemcl.mapping.meshmap import MeshMap
     from rangemcl.mapping.store import TileStore
 

@@ -371,7 +371,7 @@ class RayCaster:
         allocates larger than it writes, do not land on pages already touched
         (:func:`rangemcl.heap.trim_freed_memory`; a map's tiles: 7 % less resident memory).
         ``leaf_size``: triangles per BVH leaf (Warp's default, 4, when None; 8 takes about 13 % less memory
-        for the same hits, ``docs/design/issue17_notes.md``)."""
+        for the same hits, ``docs/architecture.md``, "Design decisions and why")."""
         name = name or "mesh"
         v, f, kept = clean_mesh(name, vertices, faces)
         if trim:

@@ -2,7 +2,8 @@
 
 A :class:`LidarSpec` holds what a spinning multi-beam LiDAR measures; the simulated LiDAR and the localizer
 read the same spec. Presets live as YAML files in ``rangemcl/presets/`` and go through the same loader as
-a user's own file (facts and their sources: ``shared/SENSORS.md``).
+a user's own file (each preset's facts and their sources: its ``source`` field; all presets side by side:
+``docs/testbed.md``, "Sensors and presets").
 
 Conventions:
 

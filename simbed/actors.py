@@ -137,7 +137,7 @@ def place_actors(data: mujoco.MjData, actors: list[Actor], t: float, ground_heig
         data.mocap_quat[a.mocap_id] = (np.cos(h / 2), 0.0, 0.0, np.sin(h / 2))
 
 
-# --- actors in any scene (issue 14) -------------------------------------------------------------------
+# --- actors in any scene ------------------------------------------------------------------------------
 
 
 def _loop_path(points: np.ndarray, loop: bool) -> tuple[np.ndarray, np.ndarray]:

@@ -1,5 +1,5 @@
 """``simbed import-scene``: a static triangle mesh (a city model, a photogrammetry, a map from ``rangemcl
-build-map``) becomes a drivable MJCF scene (issue 14).
+build-map``) becomes a drivable MJCF scene.
 
 The LiDAR sees the whole mesh, exactly: it goes into the scene as mesh geoms (binary STL files, cut into
 pieces of at most ``max_piece_faces`` triangles by a quadtree over x/y, so that no single mesh gets

@@ -1,4 +1,4 @@
-"""Routes from waypoint files, for any scene (issue 14): the file is the lane itself.
+"""Routes from waypoint files, for any scene: the file is the lane itself.
 
 A waypoint file holds one waypoint per line, ``x y`` or ``x,y`` in metres, optionally a third number,
 the speed in m/s from that waypoint on (``#`` starts a comment). :func:`lane_from_waypoints` turns it into

@@ -1,4 +1,4 @@
-"""Ground height from a scene's own static geometry, for scenes without a terrain sidecar (issue 14).
+"""Ground height from a scene's own static geometry, for scenes without a terrain sidecar.
 
 A generated town describes its terrain in its sidecar (a height field). Any other MJCF scene or mesh
 world has its ground among its static triangles: a plane, boxes, a ramp, a height field, an imported

@@ -411,7 +411,7 @@ SHIPPED_TOWNS: dict[str, TownPreset] = {
     "town_large": TownPreset(seed=2, size_m=600.0),
 }
 """Scenes shipped in ``scenes/``, by name. town_medium is the second town of the global-localization suites
-(issue 13: another seed and size than town_large's)."""
+(another seed and size than town_large's)."""
 
 _YAML_KEYS = (
     "name",

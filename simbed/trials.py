@@ -36,7 +36,9 @@ from rangemcl.localization.models import MODEL_NAMES
 from rangemcl.pool import process_pool
 
 SUITES = ("particles", "sensors", "models", "kidnap", "runtime")
-PAPER_SENSORS = {  # the paper's Carla figures (location RMSE m, yaw RMSE deg), ../shared/SENSORS.md
+# The paper's figures per sensor in Carla (location RMSE m, yaw RMSE deg), beside ours in
+# docs/results/town_large/README.md
+PAPER_SENSORS = {
     "mq-8": (0.48, 3.87),
     "vlp-16": (0.43, 3.87),
     "hdl-32e": (0.42, 3.40),
@@ -558,7 +560,7 @@ def _truthy(x) -> bool:
 
 
 def _total(rows: list[dict], col: str) -> int | None:
-    """Sum of a count column (None when no row has it: rows of earlier revisions lack the event counts)."""
+    """Sum of a count column (None when no row has it: rows of earlier versions lack the event counts)."""
     vals = [_num(r.get(col)) for r in rows if r.get(col) not in ("", None)]
     return int(np.sum(vals)) if vals else None
 

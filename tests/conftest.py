@@ -38,7 +38,7 @@ def small_town_map(tmp_path_factory):
 
 
 def _write_map_v1(m, map_dir) -> None:
-    """A map folder of format 1, as rangemcl wrote them before issue 17 (the whole mesh in a binary PLY
+    """A map folder of format 1, as rangemcl once wrote them (the whole mesh in a binary PLY
     with ground labels as vertex colours, the tiling in tiles.npz): the fixture for "maps written by
     today's builder keep loading". A copy of that writer, kept here since the library writes format 2."""
     from pathlib import Path

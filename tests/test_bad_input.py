@@ -1,4 +1,4 @@
-"""Bad input across the CLIs (issue 18): a table of cases, each one line on stderr naming the problem, exit
+"""Bad input across the CLIs: a table of cases, each one line on stderr naming the problem, exit
 status 2, and nothing created or changed.
 
 Every case runs in a copy of one small folder of good inputs (``BASE``: a three-frame sequence in the
@@ -348,7 +348,7 @@ CASES: list[tuple[str, list[str], dict]] = [
     (BUILD + " --resume", ["state.json", "not a build state"], {"o/.build/state.json": "[1]"}),
     (BUILD + " --resume", ["another sequence or other settings"], {"o/.build/state.json": '{"version": 0}'}),
     (BUILD, ["interrupted build", "--resume"], {"o/.build/state.json": "{}"}),
-    # --- rangemcl convert (issue 15)
+    # --- rangemcl convert
     ("rangemcl convert {d}/nope --out {d}/o.bag --format rosbag1", ["nope", "no such sequence folder"], {}),
     ("rangemcl convert {d}/seq --out {d}/o --format bag", ["--format 'bag'", "kitti, mcap"], {}),
     (
@@ -360,7 +360,7 @@ CASES: list[tuple[str, list[str], dict]] = [
     ("rangemcl convert {d}/seq --out {d}/seq --format kitti", ["seq", "--overwrite"], {}),
     ("rangemcl convert {d}/seq --out {d}/o --lidar-topic /points", ["seq", "topic options are for bags"], {}),
     ("rangemcl convert {d}/x.bag --out {d}/o", ["x.bag", "cannot read the bag"], {"x.bag": "not a bag\n"}),
-    # --- bags and odometry sources for localize and build-map (issue 15)
+    # --- bags and odometry sources for localize and build-map
     (LOC + " --odometry wheel", ["--odometry 'wheel'", "kiss-icp or poses:FILE"], {}),
     (LOC + " --odometry poses:{d}/nope.txt", ["nope.txt", "cannot read poses"], {}),
     (LOC + " --sensor-to-base 1,2,3", ["--sensor-to-base", "x,y,z,roll,pitch,yaw"], {}),
@@ -581,6 +581,19 @@ CASES: list[tuple[str, list[str], dict]] = [
         {"c.yaml": "refine:\n  gate_m: 1\nrefine:\n  gate_m: 2\n"},
     ),
     (LOC + " --config " + CFG, ["c.yaml", "not UTF-8"], {"c.yaml": b"\xff\xfe binary"}),
+    # --- rangemcl settings: the config it prints
+    ("rangemcl settings --config {d}/nope.yaml", ["nope.yaml", "no such config file"], {}),
+    ("rangemcl settings --config " + CFG, ["c.yaml", "malformed YAML"], {"c.yaml": "refine: {gate_m: \n"}),
+    (
+        "rangemcl settings --config " + CFG,
+        ["c.yaml", "refine.gate_mm", "gate_m"],
+        {"c.yaml": "refine:\n  gate_mm: 1\n"},
+    ),
+    (
+        "rangemcl settings --config " + CFG,
+        ["c.yaml", "observation.rays"],
+        {"c.yaml": "observation:\n  rays: 0\n"},
+    ),
     # --- rangemcl localize: the output folder
     ("rangemcl localize {d}/seq --map {d}/map --out {d}/a_file", ["a_file", "not a folder"], {}),
     ("rangemcl localize {d}/seq --map {d}/map --out {d}/seq", ["seq", "holds no localization results"], {}),

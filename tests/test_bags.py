@@ -1,4 +1,4 @@
-"""Bags in and out (issue 15): a simulated drive recorded as MCAP, ROS 2 (SQLite) and ROS 1 bags reads back
+"""Bags in and out: a simulated drive recorded as MCAP, ROS 2 (SQLite) and ROS 1 bags reads back
 as the KITTI folder of the same drive (points, per-point times and fields, times, poses, odometry, IMU); an
 MCAP written by another library (mcap-ros2-support) reads the same; a localization on the bag gives the
 folder's trajectory; bad bags are one line and exit status 2."""

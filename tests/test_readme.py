@@ -1,4 +1,4 @@
-"""The README's Python example runs as written (so the README stays true)."""
+"""The Python example of README.md runs as written (so that README.md stays true)."""
 
 from __future__ import annotations
 

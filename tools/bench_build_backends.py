@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """``rangemcl build-map`` with the process pool against ``--backend ray`` (a local Ray instance), and a Ray
-build killed with SIGKILL part-way through its tiles and resumed (issue 17).
+build killed with SIGKILL part-way through its tiles and resumed.
 
     python tools/bench_build_backends.py --seq out/demo/mapping_drive --truth out/truth.ply \
         --out /tmp/rangemcl-backends [--config settings.yaml] [--kill-after 0.5]

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""A map too large to hold whole, tracked within a memory budget (issue 17).
+"""A map too large to hold whole, tracked within a memory budget.
 
 Lays ``--copies`` × ``--copies`` copies of a built map's tiles side by side (each shifted by the map's
 extent rounded to whole tiles; where two copies meet, their faces share the tile they fall in), with

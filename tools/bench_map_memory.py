@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
-"""The localizer with the whole map against the localizer within memory budgets (issue 17,
-``rangemcl localize --map-memory MB``): peak memory of the whole process, frame time, the longest wait on
+"""The localizer with the whole map against the localizer within memory budgets
+(``rangemcl localize --map-memory MB``): peak memory of the whole process, frame time, the longest wait on
 a tile load, the updates that went without a wanted tile, and the accuracy, on the same drive and seed.
 
 Each run is a fresh ``rangemcl localize`` process under ``/usr/bin/time -v`` (its peak resident size is

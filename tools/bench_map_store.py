@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
-"""The map store of issue 17 against the format it replaces: size on disk, time to open, time and peak
-memory to load the whole map, time to read one tile.
+"""The map store of tiles (format 2) against the format it replaces: size on disk, time to open, time and
+peak memory to load the whole map, time to read one tile.
 
-Takes a map folder of format 1 (``mesh.ply`` + ``tiles.npz``, as maps were written before issue 17),
+Takes a map folder of format 1 (``mesh.ply`` + ``tiles.npz``, the older single-file format),
 copies it and upgrades the copy (``rangemcl map-upgrade``), then measures both, each step in a fresh
 interpreter so that its peak memory (``ru_maxrss``) is its own, alternating the formats ``--repeats``
 times:

@@ -13,7 +13,7 @@ median evidence one update gives the true pose over the moved one, ``½ (d² −
 What it answers: how close to the true pose a particle must lie before it fits better than another
 place does. A hypothesis of the global search is a cluster of a few dozen particles spread over metres
 and degrees; where the peak is narrower than that spread, the true place is judged by particles that fit
-worse than a look-alike street's (README, issue 13: the MQ-8).
+worse than a look-alike street's (the MQ-8: ``docs/method.md``, "Where it still falls short").
 """
 
 from __future__ import annotations

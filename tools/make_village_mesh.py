@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""The source mesh of the example mesh world ``scenes/examples/village`` (issue 14): a hillside village
+"""The source mesh of the example mesh world ``scenes/examples/village``: a hillside village
 as one triangle mesh, the kind of file a user brings (a city model, a photogrammetry), made here so that
 the example is reproducible and small.
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""kiss-icp LiDAR odometry against the wheel odometry on recorded drives (issue 15, item 2).
+"""kiss-icp LiDAR odometry against the wheel odometry on recorded drives.
 
     python tools/odometry_drift.py SEQ [SEQ ...] [--frames 300] [--out drift.json]
 

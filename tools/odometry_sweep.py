@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""How much the localizer's accuracy leans on the odometry (issue 19, step 1): the same recorded drive
+"""How much the localizer's accuracy leans on the odometry: the same recorded drive
 localized with its odometry miscalibrated on purpose.
 
     python tools/odometry_sweep.py --seq out/test_run --map out/town_small_map --out out/odo_sweep

@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# The README's "Your own scene" figures (issue 14), for the two example scenes that towngen did not make:
+# The figures of docs/testbed.md, "The example scenes, measured", for the two example scenes that towngen
+# did not make:
 # scenes/examples/campus.xml (written as MJCF) and scenes/examples/village.xml (imported from a mesh
 # with `simbed import-scene`). For each: a mapping drive (one lap of its loop, OS1-64, no actors),
 # the map (every 2nd scan), its quality against the scene's true surface (`simbed export-mesh`), a test

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""The table of ``tools/own_scene_examples.sh`` (issue 14): per example scene, the map's quality against
+"""The table of ``tools/own_scene_examples.sh``: per example scene, the map's quality against
 the scene's true surface and global localization from 5 start points of the test drive.
 
     python tools/own_scene_table.py /work/data/own_scenes

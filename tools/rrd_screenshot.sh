@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # A picture of a rerun recording (.rrd) as rerun's own viewer draws it, on a machine without a display
-# or a GPU (the README's viewer picture was made this way):
+# or a GPU (the viewer picture in docs/recordings.md, "Seeing a run", was made this way):
 #
 #   bash tools/rrd_screenshot.sh RUN.rrd OUT.png [1400x800]
 #

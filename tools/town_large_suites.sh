@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The town_large experiments of issues 13 and 19, end to end, resumable: the map of the whole covering
+# The town_large experiments (docs/trials.md), end to end, resumable: the map of the whole covering
 # drive, the odometry sweeps on the OS1-64 and HDL-64E test drives, then the sensors and particles suites
 # with this localizer and with the paper's pipeline. Hours of work on 2 cores: run it in the background,
 #
@@ -87,7 +87,7 @@ fi
 
 # the paper's pipeline right after each suite, so that each side-by-side table is whole as early as can be
 # no stamps for the suites: they reuse their finished trials by key, and the key holds the localizer's
-# revision (a stamp would skip the suite of a newer revision)
+# version (a stamp would skip the suite of a newer version)
 if want sensors; then
   "${SIMBED[@]}" trials sensors --out suites/large "${SUITE[@]}" --sensors $SENSORS
   stamp sensors

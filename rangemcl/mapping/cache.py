@@ -1,4 +1,4 @@
-"""A byte budget over a map's tiles (issue 17): which tiles are in memory, which go first, and a loader
+"""A byte budget over a map's tiles: which tiles are in memory, which go first, and a loader
 that works in the background.
 
 :class:`TileCache` holds what a :class:`TileKind` makes of each tile of a
@@ -80,7 +80,8 @@ def caster_tiles(caster, bytes_per_triangle: float = 62.0, bytes_per_vertex: flo
     ``release``; a tile's size is what the process's resident memory grows by when it is loaded: about 62
     bytes a triangle (Warp's BVH with 8 triangles a leaf, the float32 vertices and the indices) and 12 a
     vertex, with the loader giving its temporaries back after each tile (:mod:`rangemcl.heap`;
-    ``town_large``'s 60 tiles: 454 MB resident for 457 MB counted, ``docs/design/issue17_notes.md``)."""
+    ``town_large``'s 60 tiles: 454 MB resident for 457 MB counted; ``docs/architecture.md``, "Design
+    decisions and why")."""
     return TileKind(
         size_of=lambda e: int(bytes_per_triangle * e.triangles + bytes_per_vertex * e.vertices),
         prepare=lambda v, f, g: caster.build_mesh(v, f, name="tile", trim=True, leaf_size=TILE_LEAF_SIZE),

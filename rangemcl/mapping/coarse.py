@@ -1,4 +1,4 @@
-"""The coarse level of a tiled map (issue 17): each tile decimated to a few per cent of its triangles.
+"""The coarse level of a tiled map: each tile decimated to a few per cent of its triangles.
 
 A localizer within a memory budget holds the tiles near the particles at full resolution and, where the
 tiles within the sensor's range do not all fit, the farther ones at this level (``rangemcl.mapping.view``).

@@ -3,7 +3,7 @@ and a ground-height grid, and the map folder they live in.
 
 A map folder of format 2 (written by :meth:`MeshMap.save` and ``rangemcl build-map``) holds one mesh file
 per tile and an index, ``tiles/I_J.npz`` and ``tiles.json`` (:mod:`rangemcl.mapping.store`), with
-``ground.npz``, ``drive.npz`` and ``map.yaml`` as below. A folder of format 1 (written before issue 17;
+``ground.npz``, ``drive.npz`` and ``map.yaml`` as below. A folder of the older format 1 (one mesh file;
 still read, and rewritten as format 2 by ``rangemcl map-upgrade``) holds the whole mesh::
 
     mesh.ply     binary little-endian PLY: float64 x, y, z and uchar red, green, blue per vertex (ground

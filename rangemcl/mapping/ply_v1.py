@@ -1,5 +1,5 @@
 """The reader of format-1 map folders' ``mesh.ply`` (binary little-endian PLY, float64 positions, uchar
-colours as ground labels, int32 triangle lists), kept only so that maps written before issue 17 still load
+colours as ground labels, int32 triangle lists), kept only so that maps of the older format 1 still load
 (``rangemcl map-upgrade`` rewrites them as format 2, a numpy ``.npz`` mesh per tile:
 :mod:`rangemcl.mapping.store`). Nothing in rangemcl writes this format any more; ``simbed export-mesh``
 writes its PLY through Open3D.

@@ -1,5 +1,5 @@
 """The tile jobs of ``rangemcl build-map --backend ray``: one Ray task per tile, on a local Ray instance or
-a cluster (issue 17).
+a cluster.
 
 Each task is bounded by its own tile: it thins the tile's spooled points and reconstructs its mesh in a
 fresh worker process (``max_calls=1``, so that a task's peak memory is its tile's alone and nothing one

@@ -1,4 +1,4 @@
-"""The map store of tiles (issue 17): one mesh file per tile and an index, read tile by tile.
+"""The map store of tiles: one mesh file per tile and an index, read tile by tile.
 
 A map folder of format 2 holds::
 
@@ -16,8 +16,8 @@ A tile holds the faces whose centroid lies in it (the rule of :mod:`rangemcl.map
 vertices those faces use, in the order of the whole map; a vertex shared by faces of two tiles is in both
 files with the same float64 value, so the tiles' union casts exactly the rays the whole mesh casts.
 
-Why ``.npz``: measured against PLY through Open3D and trimesh on ``town_large``'s tiles
-(``docs/design/issue17_notes.md`` §2), a deflated npz reads in 12-18 ms a 150k-triangle tile, is exact in
+Why ``.npz`` (``docs/architecture.md``, "Design decisions and why"): measured against PLY through Open3D
+and trimesh on ``town_large``'s tiles, a deflated npz reads in 12-18 ms a 150k-triangle tile, is exact in
 float64 (Open3D's tensor reader returns float32 positions, trimesh writes float32) and 3.3× smaller than
 PLY; zip's CRC-32 turns a truncated or damaged file into an error, and the index's sha256 a tile of
 another map or build.

@@ -1,4 +1,4 @@
-"""``rangemcl import-mesh`` for meshes larger than memory: a binary PLY read in place (issue 17).
+"""``rangemcl import-mesh`` for meshes larger than memory: a binary PLY read in place.
 
 :func:`rangemcl.mapping.meshmap.import_mesh` reads the whole mesh (trimesh), then labels, tiles and writes
 it: its peak memory grows with the mesh (3.7 GB for 8.6 M triangles). This module writes the same map

@@ -1,4 +1,4 @@
-"""The localizer's view of a map within a memory budget (issue 17, ``rangemcl localize --map-memory MB``).
+"""The localizer's view of a map within a memory budget (``rangemcl localize --map-memory MB``).
 
 :class:`MapView` opens a map folder of format 2 by its index alone (:class:`~rangemcl.mapping.store.
 TileStore`) and keeps in the ray caster only the tiles near where the particles are, within a byte budget
@@ -57,7 +57,7 @@ from rangemcl.mapping.cache import TileCache, caster_tiles, tile_distances
 from rangemcl.mapping.meshmap import open_map_folder, read_ground_and_drive, tile_keys
 
 # What the localizer holds of a whole map (MeshMap + one BVH) per triangle: town_large's 6.7 M triangles
-# took 1.10 GB in `rangemcl localize` (README, performance)
+# took 1.10 GB in `rangemcl localize` (docs/maps.md, "Large maps: --map-memory")
 WHOLE_MAP_BYTES_PER_TRIANGLE = 165.0
 
 

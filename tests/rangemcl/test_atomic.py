@@ -1,5 +1,5 @@
-"""Atomic writes: whole or absent, and with the mode a plain ``open()`` would give (issue 18: ``mkstemp``'s
-0600 made copied maps and recordings partly unreadable)."""
+"""Atomic writes: whole or absent, and with the mode a plain ``open()`` would give (``mkstemp``'s
+0600 would make copied maps and recordings partly unreadable)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
-"""The whole-mesh checks and the place prior's matching run a chunk at a time (issue 17: town_large's map
-peaked at 1.8 GB in its load's temporaries): the chunked results equal a direct whole-array computation,
-whatever the chunk size."""
+"""The whole-mesh checks and the place prior's matching run a chunk at a time (on whole arrays, loading
+town_large's map peaked at 1.8 GB in their temporaries): the chunked results equal a direct whole-array
+computation, whatever the chunk size."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The output policy (issue 18): results are refused without --overwrite, replaced whole with it, put back
+"""The output policy: results are refused without --overwrite, replaced whole with it, put back
 when the replacing run fails, and a failed or refused run leaves nothing it created."""
 
 from __future__ import annotations

@@ -928,7 +928,7 @@ def test_unknown_handle_and_negative_threads_are_input_errors():
 
 
 def test_a_map_cast_tile_by_tile_hits_exactly_what_the_whole_mesh_hits(tmp_path):
-    """Issue 17: the tiles of a map folder (format 2), each its own mesh in the caster, give the ranges of
+    """The tiles of a map folder (format 2), each its own mesh in the caster, give the ranges of
     the whole mesh bit for bit for rays that cross tile borders (a face belongs to one tile, a shared
     vertex has the same value in both files), and both agree with the brute force."""
     from rangemcl.mapping.meshmap import MeshMap

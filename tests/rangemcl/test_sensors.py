@@ -1,4 +1,5 @@
-"""LiDAR specs: presets against shared/SENSORS.md, row order, YAML round trips and strict loading."""
+"""LiDAR specs: presets against the makers' published beam tables, row order, YAML round trips and strict
+loading."""
 
 from __future__ import annotations
 
@@ -13,7 +14,8 @@ from hypothesis import strategies as st
 from rangemcl.errors import InputError
 from rangemcl.sensors import LidarSpec, load_spec, load_spec_file, preset_names, spec_from_dict
 
-# Typed in from shared/SENSORS.md (index order), independently of the preset files.
+# Typed in from the makers' published beam tables (index order; each preset's ``source`` names its
+# origin), independently of the preset files.
 MQ8 = [-14.00, -10.50, -8.10, -5.90, -4.50, -3.17, -2.37, -1.57]
 VLP16 = [-15, 1, -13, 3, -11, 5, -9, 7, -7, 9, -5, 11, -3, 13, -1, 15]
 VLP16_VERTICAL_MM = [11.2, -0.7, 9.7, -2.2, 8.1, -3.7, 6.6, -5.1, 5.1, -6.6, 3.7, -8.1, 2.2, -9.7, 0.7, -11.2]
@@ -76,7 +78,7 @@ def write(tmp_path, text: str | dict):
     return path
 
 
-# --- presets against SENSORS.md -----------------------------------------------------------------------
+# --- presets against the published tables -------------------------------------------------------------
 
 
 def test_preset_names_are_the_documented_ones():

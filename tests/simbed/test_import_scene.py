@@ -1,4 +1,4 @@
-"""``simbed import-scene`` (issue 14): a mesh world becomes a drivable scene whose LiDAR world is the mesh
+"""``simbed import-scene``: a mesh world becomes a drivable scene whose LiDAR world is the mesh
 itself (``export-mesh`` gives it back within 1 mm) and whose car drives on its ground."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Waypoint files as lanes in any scene (issue 14): corners rounded within the car's steering, the
+"""Waypoint files as lanes in any scene: corners rounded within the car's steering, the
 checks against the scene (ground, steps, static geometry in the car's box), one line naming the first
 bad waypoint."""
 

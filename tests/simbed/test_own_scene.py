@@ -1,4 +1,4 @@
-"""Driving a scene of one's own (issue 14): an MJCF file written here, with no car and no sidecar
+"""Driving a scene of one's own: an MJCF file written here, with no car and no sidecar
 (primitives on a plane, a hump of two ramps), driven along a waypoint loop. The car climbs the ramps as
 their geometry says, and every LiDAR return agrees with MuJoCo's own ``mj_ray`` through the scene."""
 

@@ -1,4 +1,4 @@
-"""`simbed record` stopped by SIGTERM or killed by SIGKILL (issue 18): what it has written is a readable
+"""`simbed record` stopped by SIGTERM or killed by SIGKILL: what it has written is a readable
 sequence of whole frames, every per-frame file the same length, and no process of it is left behind."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Ground height from a scene's own static geometry (issue 14): checked against the analytic heights of a
+"""Ground height from a scene's own static geometry: checked against the analytic heights of a
 hand-written scene with a ramp, a tree, a building, a parking deck and a hole."""
 
 from __future__ import annotations

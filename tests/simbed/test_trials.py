@@ -222,7 +222,7 @@ def test_report_sets_methods_side_by_side_with_their_event_counts(tmp_path):
     )
     assert "| default | vlp-16 | 2 | 2 | 0 | 0 | 1 | 0 | 0 |" in table
     assert "| paper | vlp-16 | 2 | 1 | 1 | 0 | 2 | 1 | 1 |" in table
-    # rows of earlier revisions (no method, no counts) still report, without counts
+    # rows of earlier versions (no method, no counts) still report, without counts
     old = [{k: v for k, v in r.items() if k not in ("method", "false_alarms")} for r in rows[:2]]
     table = write_report("sensors", old, tmp_path)[0].read_text()
     assert "| vlp-16 | 2 | 2 | 0 | 0 | 1 | 0 | – |" in table
@@ -251,7 +251,7 @@ def test_report_sets_methods_side_by_side_with_their_event_counts(tmp_path):
 
 def test_suite_folders_follow_the_output_policy(tmp_path):
     """A new suite folder whose run fails at once leaves nothing; a folder holding something else is
-    refused even with --overwrite; --report-only and --overwrite exclude each other (issue 18)."""
+    refused even with --overwrite; --report-only and --overwrite exclude each other."""
     import subprocess
     import sys
 

@@ -1,4 +1,4 @@
-"""The tile cache (issue 17): never more than its budget in measured bytes, evicts the farthest tiles
+"""The tile cache: never more than its budget in measured bytes, evicts the farthest tiles
 first, holds the nearest wanted tiles, reports what did not fit."""
 
 from __future__ import annotations

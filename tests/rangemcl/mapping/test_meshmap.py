@@ -280,7 +280,7 @@ def test_round_trip_is_exact(tmp_path):
 
 
 def test_a_map_of_format_1_still_loads(tmp_path, save_v1):
-    """Maps written before issue 17 (the whole mesh in mesh.ply, the tiling in tiles.npz) load as they did;
+    """Maps of the older format 1 (the whole mesh in mesh.ply, the tiling in tiles.npz) load as they did;
     their PLY is ordinary (trimesh and Open3D read the same vertices and colours)."""
     m = make_map()
     out = tmp_path / "old"

@@ -1,4 +1,4 @@
-"""The localizer within a memory budget (issue 17, ``--map-memory``): with room for every tile it gives the
+"""The localizer within a memory budget (``--map-memory``): with room for every tile it gives the
 whole map's results exactly; with less it holds no more than the budget and logs what it left out; a
 slow disk does not hold up a tracking step; a map of format 1 is refused with the command that fixes it."""
 
