@@ -571,7 +571,7 @@ class LocalizationPipeline:
             "calib_Tr": seq.calib_Tr.tolist(),
             "calib_source": seq.calib_source,
         }
-        if hasattr(self.map, "summary"):
+        if self.map.budgeted:
             summary["map_memory"] = self.map.summary()
         if loc.prior is not None:
             summary["place_prior"] = {

@@ -36,7 +36,7 @@ def save_range_image_png(
 
 def _map_background(ax, mesh_map, max_points: int = 150_000) -> None:
     """The map's non-ground vertices from above, light grey."""
-    if hasattr(mesh_map, "background_points"):  # a map within a memory budget: read tile by tile
+    if mesh_map.budgeted:  # a map within a memory budget: read tile by tile
         v = mesh_map.background_points(max_points)
     else:
         v = mesh_map.vertices[~mesh_map.is_ground]

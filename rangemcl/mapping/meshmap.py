@@ -36,7 +36,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import numpy as np
 import yaml
@@ -201,6 +201,32 @@ def label_ground_vertices(
 # ---------------------------------------------------------------------------------------------- the map
 
 
+@runtime_checkable
+class Map(Protocol):
+    """What the localizer reads of a map, whether held whole (:class:`MeshMap`) or within a memory budget
+    (:class:`rangemcl.mapping.view.MapView`). A budgeted map (``budgeted`` true) also has the budget's
+    methods (``update``, ``preload``, ``consult``, ``reserve``, ``check_budget``, ``summary``,
+    ``background_points``, ``close``); a whole map has the mesh itself (``vertices``, ``faces``,
+    ``is_ground``). Code asks ``budgeted``, never which methods an object happens to have."""
+
+    budgeted: bool
+    meta: dict
+    ground: GroundGrid
+    drive_xy: np.ndarray | None  # (K, 2) the mapping drive, if the map keeps it
+    source_dir: Path | None  # the folder it was read from
+    tiles: np.ndarray  # (T, 2) int32 (i, j)
+    tile_size_m: float
+    tile_origin_xy: np.ndarray  # (2,)
+
+    @property
+    def extent(self) -> tuple[float, float, float, float, float, float]: ...
+
+    @property
+    def n_triangles(self) -> int: ...
+
+    def tile_at(self, x, y) -> np.ndarray: ...
+
+
 @dataclass(eq=False)
 class MeshMap:
     """A triangle-mesh map in the world frame, tiled (see the module docstring).
@@ -220,6 +246,7 @@ class MeshMap:
     drive_xy: np.ndarray | None = field(default=None, repr=False)  # (K, 2) the mapping drive, if known
     source_dir: Path | None = field(default=None, repr=False)  # the folder it was loaded from
     format_version: int = field(default=FORMAT_VERSION, repr=False)  # of that folder
+    budgeted: ClassVar[bool] = False  # held whole (the Map protocol)
 
     def __post_init__(self) -> None:
         self.vertices = np.asarray(self.vertices, np.float64)

@@ -120,6 +120,8 @@ class MapView:
             (``rangemcl map-coarse``), if it has one.
     """
 
+    budgeted = True  # the Map protocol (rangemcl.mapping.meshmap.Map): held within a budget
+
     def __init__(
         self,
         map_dir,

@@ -339,3 +339,23 @@ def test_a_slow_likelihood_field_tree_does_not_hold_up_a_tracking_update(tiled, 
     finally:
         field.close()
         view.close()
+
+
+def test_both_kinds_of_map_follow_the_map_protocol(small_town_map):
+    """A whole map and a map within a budget give what :class:`rangemcl.mapping.meshmap.Map` promises,
+    the same figures where both hold them, and say which they are (``budgeted``)."""
+    from rangemcl.mapping.meshmap import Map
+    from rangemcl.mapping.view import open_map
+
+    _, map_dir = small_town_map
+    whole, _ = open_map(map_dir)
+    view, _ = open_map(map_dir, 100.0)
+    try:
+        assert isinstance(whole, Map) and isinstance(view, Map)
+        assert not whole.budgeted and view.budgeted
+        assert whole.n_triangles == view.n_triangles and np.allclose(whole.extent, view.extent)
+        assert np.array_equal(whole.tiles, view.tiles) and whole.meta == view.meta
+        xy = np.array([[0.0, 0.0], [10.0, -5.0]])
+        assert np.array_equal(whole.tile_at(xy[:, 0], xy[:, 1]), view.tile_at(xy[:, 0], xy[:, 1]))
+    finally:
+        view.close()
