@@ -1,4 +1,4 @@
-"""The localizer's stages, one module each (DESIGN.md, "Where each piece lives"):
+"""The localizer's stages, one module each (docs/architecture.md, "Where each piece lives"):
 
 * ``scan_prep``: the scan's rays for one update (sampling, de-skew, levelling);
 * ``renderer``: every particle's view of the map for those rays, reduced to residuals (one Warp kernel);
@@ -7,8 +7,12 @@
 * ``place_prior``: map-rendered profiles matched against the scan at every yaw;
 * ``hypotheses``: clusters, their evidence and the sequential convergence test;
 * ``lost``: the evidence watch and the second opinion of a converged filter;
-* ``filter``: the core (``MonteCarloLocalizer.step``) that composes them.
+* ``refine`` and ``calibration``: scan-to-mesh refinement of a converged pose, and the odometry's online
+  calibration;
+* ``filter``: the core (``MonteCarloLocalizer.step``) that composes them;
+* ``settings`` and ``factory``: the YAML settings (every default) and the factories that build the filter
+  and its parts from them (``rangemcl.mcl`` re-exports both).
 
 They import numpy, scipy, Warp and rangemcl's numeric core (``se2``, ``raycast``, ``particles``); the
-settings (``rangemcl.mcl``) and the command-line pipeline (``rangemcl.localize``) build on them.
+command-line pipeline (``rangemcl.localize``) builds on them.
 """

@@ -1,4 +1,4 @@
-"""Online calibration of the odometry: its translation scale and the gyro's yaw-rate bias (issue 19).
+"""Online calibration of the odometry: its translation scale and the gyro's yaw-rate bias.
 
 Wheel odometry is a few per cent off (tyre pressure, wear, load) and a gyro drifts. The filter predicts
 with the odometry, so a 3 % scale error makes every prediction 3 % short or long and the estimate lags by
@@ -129,8 +129,7 @@ class OdometryCalibrator:
 
 class ParticleCalibration:
     """The odometry's scale and the gyro's bias as extra state of a converged filter's particles: the
-    alternative to :class:`OdometryCalibrator`'s slow estimator that issue 19 asks to measure against it
-    (``motion.calibration: particles``; README "Accuracy that does not lean on the odometry").
+    alternative to :class:`OdometryCalibrator`'s slow estimator (``motion.calibration: particles``).
 
     * When the filter converges (or starts tracking), every particle draws its own scale and bias around
       the running estimate (``sigma_scale``, ``sigma_bias_rad_s``);

@@ -151,16 +151,12 @@ def lost_detector(r: RecoverySettings, separation_m: float, floor: float) -> Los
         polish_per_place=r.polish_per_place,
         polish_sigma_xy_m=r.polish_sigma_xy_m,
         polish_sigma_yaw_deg=r.polish_sigma_yaw_deg,
-        polish_grid=r.polish_grid,
-        rival_first=r.rival_first,
         opinion_inlier_gain=r.opinion_inlier_gain,
         opinion_badness_ratio=r.opinion_badness_ratio,
         saturated_badness_ratio=r.saturated_badness_ratio,
         history_updates=r.history_updates,
         history_margin=r.history_margin,
         history_min_inliers=r.history_min_inliers,
-        history_in_probation=r.history_in_probation,
-        history_skips_suspicion=r.history_skips_suspicion,
         opinion_min_range_m=r.opinion_min_range_m,
         max_vetoed_updates=r.max_vetoed_updates,
         probation_updates=r.probation_updates,
@@ -169,7 +165,6 @@ def lost_detector(r: RecoverySettings, separation_m: float, floor: float) -> Los
         consistent_m=separation_m,
         max_misses=r.opinion_max_misses,
         doubt_ratio=r.doubt_ratio,
-        doubt_opinions=r.doubt_opinions,
         doubt_inlier_gain=r.doubt_inlier_gain,
     )
 
@@ -262,8 +257,6 @@ def build_localizer(
         inject_share=i.inject_share,
         inject_top=i.inject_top,
         inject_below_share=i.inject_below_share,
-        inject_weight=i.inject_weight,
-        inject_held=i.inject_held,
         convergence=c.method,
         tiles=c.tiles,
         max_radius_m=c.max_radius_m,
@@ -319,6 +312,5 @@ def map_place_prior(
             replace_damaged=True,  # rendering the prior is what this is for: a damaged one is replaced
         )
     finally:
-        close = getattr(mesh_map, "close", None)
-        if close is not None:
-            close()
+        if mesh_map.budgeted:
+            mesh_map.close()

@@ -22,7 +22,8 @@ LiDAR frame (:class:`MonteCarloLocalizer`).
    (:mod:`rangemcl.localization.lost`); when lost, it spreads again and relocalizes.
 
 The constructor takes plain values and the parts it composes (observation model, ray selection, drivable
-area, lost detector); :func:`rangemcl.mcl.build_localizer` makes them from the YAML settings. All
+area, lost detector); :func:`rangemcl.localization.factory.build_localizer` makes them from the YAML
+settings (:class:`rangemcl.localization.settings.LocalizerSettings`). All
 randomness comes from the generator handed in.
 """
 
@@ -41,7 +42,6 @@ from rangemcl.localization.calibration import OdometryCalibrator, ParticleCalibr
 from rangemcl.localization.hypotheses import (
     ConvergenceTest,
     cluster_labels,
-    held_poses,
     kld_sample_size,
     occupied_bins,
     resample_by_cluster,
@@ -83,8 +83,6 @@ from rangemcl.se2 import odometry_increment, rotation_roll_pitch, se2_compose, s
 POLISH_COARSE = (2.0, 0.5, 8.0, 2.0)
 POLISH_FINE = (0.4, 0.2, 1.5, 0.5)
 POLISH_COARSE_RAYS_EVERY = 3  # the coarse grid is scored on every third ray
-HELD_YAW_RAD = math.radians(20.0)  # a fresh prior particle this close in yaw to a held one (and within
-# cluster_m) is a place the search holds already
 
 
 def _prior_nbytes(area: DrivableArea, params: PriorParams) -> int:
@@ -145,7 +143,8 @@ class MonteCarloLocalizer:
             is set to); None: the odometry as it comes.
         rng: the run's generator.
         sensor_height_m: the sensor's height above the ground.
-        The keyword values: see :class:`rangemcl.mcl.LocalizerSettings`, which documents each.
+        The keyword values: see :class:`rangemcl.localization.settings.LocalizerSettings`, which
+            documents each.
     """
 
     def __init__(
@@ -196,8 +195,6 @@ class MonteCarloLocalizer:
         inject_share: float,
         inject_top: int,
         inject_below_share: float,
-        inject_weight: float | None,
-        inject_held: bool,
         # convergence
         convergence: str,
         tiles: int,
@@ -262,8 +259,6 @@ class MonteCarloLocalizer:
         self.inject_share = float(inject_share)
         self.inject_top = int(inject_top)
         self.inject_below_share = float(inject_below_share)
-        self.inject_weight = self.inject_share if inject_weight is None else float(inject_weight)
-        self.inject_held = bool(inject_held)
         self.convergence = convergence
         self.tiles = int(tiles)
         self.max_radius_m = float(max_radius_m)
@@ -304,13 +299,12 @@ class MonteCarloLocalizer:
         self._moved_m = 0.0
         self._motion = np.zeros(3)
         # the recent updates' rays (None: no scan) and odometry since the update before, oldest first, for
-        # the second opinion's look at the past (LostDetector.history_updates; empty when that is off)
-        # (and, revision 15, the scans of a suspicion that lasts up to max_vetoed_updates before them)
+        # the second opinion's look at the past (LostDetector.history_updates; None when that is off),
+        # and before them as many as a suspicion may last (max_vetoed_updates), whose scans it leaves out
         keep = lost is not None and lost.history_updates > 0
         self._recent: deque | None = None
         if keep:
-            skips = lost.max_vetoed_updates if lost.history_skips_suspicion else 0
-            self._recent = deque(maxlen=lost.history_updates + 1 + skips)
+            self._recent = deque(maxlen=lost.history_updates + 1 + lost.max_vetoed_updates)
         self.hypotheses: list = []  # the search's clusters at the last update, largest share first
         self.refinements = 0  # refinements taken ...
         self.refused_refinements = 0  # ... and refused (outside the cloud's spread)
@@ -346,7 +340,8 @@ class MonteCarloLocalizer:
 
     def prior_for(self, levelled_points: np.ndarray, raw_points: np.ndarray | None = None) -> PlacePrior:
         """The prior a scan is matched with: the band prior, unless the scan has nothing in its high band
-        (a sensor that sees nothing above the parked cars, such as the MQ-8) and ``beam_prior`` is on:
+        (a sensor that sees nothing above the parked cars: all its beams below the horizon) and
+        ``beam_prior`` is on:
         then the prior of the sensor's own top beam (decided at the first scan matched, which also gives
         the beam's elevation, for the rest of the run; loaded from the map folder or rendered there once:
         :func:`rangemcl.localization.place_prior.beam_params`). ``raw_points``: the scan before levelling
@@ -393,9 +388,8 @@ class MonteCarloLocalizer:
     def _count_in_budget(self, what: str, nbytes: int) -> None:
         """A map held within a memory budget (``rangemcl.mapping.view.MapView``) counts what the filter
         derives from it against that budget; a whole map has no budget."""
-        reserve = getattr(self.map, "reserve", None)
-        if reserve is not None:
-            reserve(what, nbytes)
+        if self.map.budgeted:
+            self.map.reserve(what, nbytes)
 
     def spread(self, n: int | None = None) -> None:
         """Global localization: ``n`` particles uniform over the drivable area; yaw along the mapping
@@ -471,8 +465,7 @@ class MonteCarloLocalizer:
         the band prior of a search (now, or after the lost detector re-spreads the particles; its second
         opinion reads it too) and the beam prior a scan with nothing in the high band asks for. A budget
         short of it is refused in one line now, not frames later."""
-        check = getattr(self.map, "check_budget", None)
-        if check is None or self._stepped:
+        if not self.map.budgeted or self._stepped:
             return
         expected = {}
         if self.use_prior and (search or self.lost is not None):
@@ -480,12 +473,12 @@ class MonteCarloLocalizer:
             if self.use_beam_prior:  # (its size does not depend on the beam's elevation)
                 beam = beam_params(self.prior_params, -10.0, self.sensor_height_m)
                 expected["beam place prior"] = _prior_nbytes(self.init_cells, beam)
-        check(expected)
+        self.map.check_budget(expected)
 
     def _preload(self) -> None:
         """Before the first frame, a map within a memory budget loads the tiles that the particles need
         (the start-up of the run, as a map held whole is read before it), so that no frame waits for them."""
-        if not self._stepped and hasattr(self.map, "preload"):
+        if not self._stepped and self.map.budgeted:
             self.map.preload(self.particles[:, :2], self.map_radius_m)
 
     def _set_particles(self, particles: np.ndarray) -> None:
@@ -573,7 +566,7 @@ class MonteCarloLocalizer:
                 if self._prior_pending and levelled is not None:
                     self._draw_initial_prior(levelled)
                 self._stepped = True
-                if hasattr(self.map, "update"):  # a map within a memory budget (rangemcl.mapping.view)
+                if self.map.budgeted:  # a map within a memory budget (rangemcl.mapping.view)
                     info.update(
                         self.map.update(self.particles[:, :2], self.map_radius_m, wait=not self.converged)
                     )
@@ -693,12 +686,7 @@ class MonteCarloLocalizer:
     def _weigh(self, rays: ScanRays, levelled: np.ndarray | None = None, level=None) -> dict:
         loglik, bad = self.scorer.score(rays, self.particles, self.sensor_z(self.particles[:, :2]))
         self.log_w = self.log_w + loglik
-        if (
-            not self.converged
-            and self.convergence == "hypotheses"
-            and self.polish_hypotheses > 0
-            and self.polish_keep > 0
-        ):
+        if not self.converged and self.convergence == "hypotheses" and self.polish_hypotheses > 0:
             loglik, bad = self._polish_hypotheses(rays, loglik, bad)
         best = float(bad.min())
         inl = self.scorer.last_inliers
@@ -763,7 +751,7 @@ class MonteCarloLocalizer:
         return p, ll.reshape(shape), bad.reshape(shape), None if inl is None else inl.reshape(shape)
 
     def _grid_look(self, rays: ScanRays, seeds: np.ndarray):
-        """The second opinion's look around its best places (revision 15): each seed's coarse grid
+        """The second opinion's look around its best places: each seed's coarse grid
         (:data:`POLISH_COARSE`, every third ray), then the fine grid (:data:`POLISH_FINE`) around its most
         likely pose; returns the fine grids' poses ``(M, 3)``, badness and inlier shares ``(M,)`` (the
         search's polish, :meth:`_polish_hypotheses`, on the opinion's rays)."""
@@ -777,19 +765,18 @@ class MonteCarloLocalizer:
     def _polish_hypotheses(
         self, rays: ScanRays, loglik: np.ndarray, bad: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        """While searching, the ``polish_hypotheses`` heaviest hypotheses (a cluster's particles within
-        one 30° sector of yaw) are searched around their best particle on this scan: a coarse grid
+        """While searching, the ``polish_hypotheses`` heaviest hypotheses (a cluster's particles within one
+        30° sector of yaw) are searched around their best particle on this scan: a coarse grid
         (:data:`POLISH_COARSE`, scored on every third ray) and a fine one around its best pose
-        (:data:`POLISH_FINE`, all rays); the fine grid's ``polish_keep`` best poses join the cloud.
-        The range likelihood is sharp (median over the MQ-8's
-        town_large drive: 0.55 nats per update lost 0.2 m to the side, 0.55 at 1° of yaw;
-        ``tools/likelihood_peak.py``) and a hypothesis holds a few dozen particles over metres and
-        degrees, so without this the true place was judged by particles a median 1.5 m and 2° off its
-        peak (mean residual 0.51 m against 0.22 m at the true pose) and trailed a look-alike street's
-        0.44 m for 31 updates (MQ-8 from start 622, ``tools/search_trace.py``; revision 14, README).
-        The seed's weight before this scan is shared among itself and the new poses, each then taking
-        its own likelihood. Returns ``loglik`` and ``bad`` extended to the new poses (the clusters are
-        found again by the search update: the new poses can join neighbouring ones)."""
+        (:data:`POLISH_FINE`, all rays); the fine grid's ``polish_keep`` best poses join the cloud. The range
+        likelihood is sharp (a pose 0.2 m to the side, or a degree off, can lose about half a nat per update;
+        ``tools/likelihood_peak.py`` measures it on a drive) and a hypothesis holds a few dozen particles over
+        metres and degrees, so without this the true place is judged by particles off its peak, which can fit
+        worse than a look-alike street's best particles for many updates. The coarse grid on a third of the
+        rays keeps the cost of finding the peak's neighbourhood low; the fine grid on all rays places it. The
+        seed's weight before this scan is shared among itself and the new poses, each then taking its own
+        likelihood. Returns ``loglik`` and ``bad`` extended to the new poses (the clusters are found again by
+        the search update: the new poses can join neighbouring ones)."""
         labels, _count = cluster_labels(self.particles[:, :2], self.cluster_m)
         sectors = 12
         sector = np.floor((self.particles[:, 2] + math.pi) / (2 * math.pi) * sectors).astype(np.int64)
@@ -886,12 +873,10 @@ class MonteCarloLocalizer:
         ):
             k = max(1, int(round(self.inject_share * n)))
             fresh = self._from_prior(k, levelled, self.inject_top)
-            if fresh is not None and not self.inject_held:
-                fresh = fresh[~held_poses(parts, fresh, self.cluster_m, HELD_YAW_RAD)]
             if fresh is not None and len(fresh):
-                share = min(self.inject_weight * len(fresh) / k, 1.0 - 1e-12)
+                share = min(self.inject_share * len(fresh) / k, 1.0 - 1e-12)
                 parts = np.vstack([parts, fresh])
-                each = math.log(max(self.inject_weight, 1e-300) / k)
+                each = math.log(max(self.inject_share, 1e-300) / k)
                 logw = np.concatenate([logw + math.log1p(-share), np.full(len(fresh), each)])
                 leader = np.concatenate([leader, np.zeros(len(fresh), bool)])
         self.particles, self.log_w, self._leader = parts, logw, leader
@@ -986,8 +971,8 @@ class MonteCarloLocalizer:
             polish=polish,
             badness_ratio=lost.opinion_badness_ratio,
             saturated_ratio=lost.saturated_badness_ratio,
-            look=(lambda seeds: self._grid_look(sub, seeds)) if lost.polish_grid else None,
-            rival=rival if lost.rival_first else None,
+            look=lambda seeds: self._grid_look(sub, seeds),
+            rival=rival,
             rival_m=lost.consistent_m,
         )
         if (
@@ -995,7 +980,6 @@ class MonteCarloLocalizer:
             and self._recent is not None
             and own_inl is not None
             and float(own_inl[j]) >= lost.history_min_inliers
-            and (lost.history_in_probation or not lost.in_probation)
         ):
             own = self.particles[j].copy()
             rival_fit = history_fit(self._history_inliers, found.pose, polish)
@@ -1007,23 +991,23 @@ class MonteCarloLocalizer:
     def _history_inliers(self, poses: np.ndarray) -> np.ndarray:
         """Each pose's ``(M, 3)`` mean inlier share over the far rays of the previous updates' scans (up to
         ``history_updates``), the pose moved back along the odometry to each of them; NaN with fewer than
-        half of them to compare (no scan, too few far rays). With ``history_skips_suspicion`` (revision
-        15) the watch's current run of bad updates is left out: as many scans as it counts (the current
-        update included), those of its updates and the one just before them: the past is the one before
-        the suspicion (a vehicle alongside an MQ-8 at the true pose hid its far rays for 15 updates on the
-        `town_medium` suite, and over a past that held them a place 171 m off fit within 0.03 of it)."""
+        half of them to compare (no scan, too few far rays). The watch's current run of bad updates is
+        left out: as many scans as it counts (the current update included), those of its updates and the
+        one just before them, so the past is the one before the suspicion (a vehicle alongside that hides
+        the far rays at the true pose for a while would otherwise let a distant place fit that past nearly
+        as well)."""
         p = np.asarray(poses, np.float64).reshape(-1, 3)
         total = np.zeros(len(p))
         count = 0
         entries = list(self._recent)
-        skip = self.lost.watch.bad_updates if self.lost.history_skips_suspicion else 0
+        skip = self.lost.watch.bad_updates
         for i in range(len(entries) - 1, 0, -1):
             p = se2_compose(p, se2_inverse(entries[i][1]))  # the pose at the update before
             back = len(entries) - 1 - i  # updates before this one
             if back >= skip + self.lost.history_updates:
                 break
             if back < skip:
-                continue  # a scan of the current suspicion (revision 15)
+                continue  # a scan of the current suspicion
             sub = None if entries[i - 1][0] is None else self._far_rays(entries[i - 1][0])
             if sub is None:
                 continue

@@ -32,7 +32,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
 from rangemcl.particles import low_variance_resample
 from rangemcl.se2 import circular_mean
@@ -207,20 +206,3 @@ class ConvergenceTest:
             and self.lead_distance_m >= self.min_distance_m
             and best.radius95_m <= self.compact_radius_m
         )
-
-
-def held_poses(held: np.ndarray, poses: np.ndarray, radius_m: float, yaw_rad: float) -> np.ndarray:
-    """Which of ``poses`` (M, 3) the search already holds: a particle of ``held`` (N, 3) lies within about
-    ``radius_m`` and ``yaw_rad`` of it. Yaw enters as a point on a circle whose chord for ``yaw_rad`` is
-    ``radius_m``, so one ball query of radius ``radius_m·√2`` in (x, y, r·cos, r·sin) answers both."""
-    held = np.asarray(held, np.float64).reshape(-1, 3)
-    poses = np.asarray(poses, np.float64).reshape(-1, 3)
-    if len(held) == 0 or len(poses) == 0:
-        return np.zeros(len(poses), bool)
-    r = radius_m / (2.0 * math.sin(0.5 * yaw_rad))
-
-    def embed(p):
-        return np.column_stack([p[:, 0], p[:, 1], r * np.cos(p[:, 2]), r * np.sin(p[:, 2])])
-
-    d, _ = cKDTree(embed(held)).query(embed(poses), k=1, distance_upper_bound=radius_m * math.sqrt(2.0))
-    return np.isfinite(d)

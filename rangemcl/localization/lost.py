@@ -4,71 +4,63 @@ A converged filter sees two kinds of bad news. At a **wrong place** (a look-alik
 part of the rays keep agreeing with the map, but the best particle's residual jumps 5-10x and its inlier
 share falls. When the **world changed** at the right place (a parked car gone, a van or a bus alongside
 hiding the facades, an object the map never had) the residual rises as well, and the inlier share can
-fall as far. The signal alone cannot always tell the two apart (measured on the `town_medium` suite:
-five false alarms at the same two places of the test drive, README), so the watch only raises a
-*suspicion*, and the suspicion is tested against the map:
+fall as far. The signal alone cannot always tell the two apart (a watch that decided alone would raise
+false alarms wherever the street changed), so the watch only raises a *suspicion*, and the suspicion is
+tested against the map:
 
 * :class:`SignalWatch`: the best particle's inlier share
   (:func:`rangemcl.localization.models.inlier_share`: rays far beyond the map, i.e. removed objects, left
   out) below ``inlier_factor`` x its running median; or below ``inlier_residual_factor`` x that median
   while the best residual is above ``inlier_residual_jump`` x its own running median (signal
   ``inliers``); or the best residual above ``factor`` x its median and the model's floor (signal
-  ``residual``, the localizer before issue 13). Suspicious after ``updates`` bad updates in a row.
+  ``residual``, the simpler watch; also what the ``inliers`` signal falls back on for models without an
+  inlier share). Suspicious after ``updates`` bad updates in a row.
 * :func:`second_opinion`: the prior's best places for *this* scan (away from the estimate) are scored
   with the same observation model and rays as the filter. If one of them explains the scan clearly
   better than the converged cloud's best particle (inlier share higher by ``inlier_gain``, residual
   lower) at ``opinion_hits`` updates, each time where the previous one's place has moved with the
   odometry (within ``consistent_m``; at most ``max_misses`` updates without it in between), the filter
-  is at the wrong place: lost. (One better place alone is not enough: on the `town_medium` suite an
-  MQ-8 at the true pose met, at one update, a place 210 m off that fit its far rays better; the cause at
-  that update was not traced.) The best places get a second look around their best particle
-  (:class:`Polish`), and the last better place, moved with the odometry, is scored again at the next
-  update whether the prior offers it or not (revision 10: the prior's 2 m cells and few particles each
-  missed the MQ-8's sharply peaked true pose, and the prior did not offer it at every scan). If none
-  does, the world changed and the
-  filter stays where it is (the alarm is *vetoed* and counted). A suspicion that lasts
+  is at the wrong place: lost. One better place alone is not enough: at a single update some distant
+  place can fit the far rays better than the true pose, but it does not keep doing so as the car drives
+  on. The prior's cells are 2 m wide with a few particles each, too coarse for a sensor whose likelihood
+  peaks within decimetres and a degree, so the best places get a second look around their best particle
+  (the filter's grids: ``look``). The last better place, moved with the odometry, is scored again at the
+  next update whether the prior offers it or not (the prior does not rank a place high at every scan),
+  and judged first: it is confirmed while it stays better, even where another place fits a little more,
+  so that a look-alike does not restart the count of confirmations. If no place is better, the world
+  changed and the filter stays where it is (the alarm is *vetoed* and counted). A suspicion that lasts
   ``max_vetoed_updates`` updates is taken as lost all the same, so that a true place missing from the
   prior cannot pin the filter to a wrong one for ever.
 
 The same second opinion also runs at each of the first ``probation_updates`` updates after every
 convergence, suspicious or not: a wrong convergence that fits nearly as well as the truth raises no
 signal, but the true place, once the prior offers it, fits better (``probation_hits`` consistent checks
-in a row are needed), and (revision 10) at every update whose inlier share is below ``doubt_ratio`` of
-its running level (*doubtful*; ``doubt_opinions``): a wrong place that fit the first scans after its
-convergence as well as the true one often fits the next ones only half as well, without falling below
-the suspicion's half of the level (the MQ-8 from start 700 on `town_large`: 0.46-0.65 against a level
-of 0.9 after the probation, while the true pose reached 0.98). There a better place must gain
-``doubt_inlier_gain`` (0.25) of the far rays' inlier share, not 0.15: an MQ-8 at the true pose, 0.80-0.88
-in a changed street, met a place 307 m off whose second look reached 0.96-0.99 (from start 622).
+in a row are needed). It runs as well at every update whose inlier share is below ``doubt_ratio`` of its
+running level (*doubtful*): a wrong place that fit the first scans after its convergence as well as the
+true one often fits the next ones clearly worse without falling below the suspicion's share of the
+level. There a better place must gain ``doubt_inlier_gain`` of the far rays' inlier share, more than in a
+suspicion or the probation: at the true pose in a changed street the filter fits less well than usual,
+and a distant place's second look can beat it by the usual gain.
 
-Revision 12 adds two rules to :func:`second_opinion`'s verdict (docs/results/v12):
+Two more rules decide what counts as better:
 
-* **where the inlier share saturates** (``saturated_ratio``): an MQ-8 at a wrong place kept 91-99 % of
-  its far rays as inliers while the true pose had 99-100 %, so no place could gain 0.15; there a place
-  with as many inliers and a mean residual below 0.75 x the filter's is better too (the true pose's was
-  half the wrong place's);
+* **where the inlier share saturates** (``saturated_ratio``): a sensor whose far rays nearly all fit at a
+  wrong place as at the true one leaves no room for the gain; there a place with as many inliers and a
+  mean residual well below the filter's is better too;
 * **a better place must explain the recent past** (:func:`history_fit`, ``history_updates``): in a street
-  that changed since the mapping drive the true pose fit 63-75 % of the far rays and a place 236 m off
-  93-97 %, at two updates in a row; over the previous 30 updates' scans (each place moved back along the
-  odometry) the true pose fit 0.90-0.92 and that place 0.66-0.78, while at a wrong convergence the true
-  place fit the past better than the wrong one (0.98 against 0.88). A place that fits the past worse
-  than the filter's own by more than ``history_margin`` is not better. Asked only while the filter's
-  own far rays still fit ``history_min_inliers`` (half): a car that jumped (the kidnap suite) fits
-  nothing where it was, and its new place cannot have explained the scans from before the jump.
-
-Revision 13 left that look at the past out of the probation after a convergence
-(``history_in_probation``, docs/results/v13): the search chose the place it converged on from those
-same past scans, so the past favours a wrong convergence, and on town_large the MQ-8's wrong
-convergence at frame 726 was caught 12 frames after it instead of 10. Revision 14 takes it there again
-(the default): its polished search converges earlier, and on town_large the MQ-8's convergence at the true
-place at frame 29 was called lost 7 updates later without the look (docs/results/v14).
-
-Revision 15 (docs/results/v15) sharpens the opinion: its best places get the search's grids instead of
-:class:`Polish`'s random rounds (``polish_grid``; the filter's ``_grid_look``), the last better place is
-judged first and confirmed while it stays better (``rival_first``: look-alikes with a few more inliers no
-longer restart the count), and the look at the past leaves out the scans of the current suspicion
-(``history_skips_suspicion``: a vehicle alongside that hid the far rays for 15 updates had made a place
-171 m off fit that past within 0.03 of the true one).
+  that changed since the mapping drive, a distant place can fit the current scans' far rays better than
+  the true pose for several updates in a row, but over the previous updates' scans (each place moved
+  back along the odometry) the true pose fits better; at a wrong convergence, in turn, the true place
+  fits the past better than the wrong one, so the look does not hold it back. A place that fits the past
+  worse than the filter's own by more than ``history_margin`` is not better. The look is taken only
+  while the filter's own far rays still fit ``history_min_inliers``: a car that jumped (a kidnapping)
+  fits nothing where it was, and its new place cannot have explained the scans from before the jump. It
+  is taken in the probation after a convergence too: the search chose its place from those same past
+  scans, so the past can favour a wrong convergence, but without the look a correct convergence can be
+  called lost by a look-alike soon after. And it leaves out the scans of the current suspicion (its bad
+  updates and the one before them; ``MonteCarloLocalizer._history_inliers``): a vehicle alongside that
+  hides the far rays at the true pose for a while would otherwise let a distant place fit that past
+  nearly as well.
 """
 
 from __future__ import annotations
@@ -166,13 +158,14 @@ class Opinion:
 
 @dataclass
 class Polish:
-    """The second opinion's second look: the prior's candidates sit on a 2 m grid with a few particles
-    each, too coarse for a sensor whose few rays reach far (an MQ-8 place scored 0.49 of its rays as
-    inliers on its cell's particles and 0.92 at the true pose, README, issue 13). So the ``places`` best
-    distinct places (at least ``min_apart_m`` apart, best first) get ``per_place`` more particles around
-    their best particle (normal, ``sigma_xy_m`` and ``sigma_yaw_deg``; the first at the particle
-    itself), drawn from ``rng``; ``rounds`` times, each around the best so far with half the spread (the
-    aligned yaw of a place is 5° off at the 90th percentile for the MQ-8, 1.7 m at 20 m)."""
+    """How the second opinion looks again around a place: the prior's candidates sit on a 2 m grid with
+    a few particles each, too coarse for a sensor whose likelihood peaks within decimetres and a degree
+    (and a place's aligned yaw can be a few degrees off, metres at the far rays' range).
+    :meth:`seeds` picks the ``places`` best distinct places (at least ``min_apart_m`` apart, best first)
+    that :func:`second_opinion`'s ``look`` searches around; :meth:`around` draws ``per_place`` particles
+    around each of some places (normal, ``sigma_xy_m`` and ``sigma_yaw_deg``, times a scale; the first
+    at the place itself) from ``rng``: around the last better place, and in :func:`history_fit`'s
+    ``rounds`` rounds, each around the best so far with half the spread."""
 
     places: int
     per_place: int
@@ -247,17 +240,17 @@ def second_opinion(
     and decide whether the best of those farther than ``min_distance_m`` from ``estimate`` explains the
     scan clearly better than the filter's best particle: its inlier share higher by ``inlier_gain`` and
     its badness lower (models with an inlier share), or its badness below ``badness_ratio`` x the
-    filter's (models without). With ``polish`` the best few places are searched again around their best
-    particle (:class:`Polish`) before the decision; with ``look`` as well, a callable ``look(seeds (K, 3))
-    -> (poses (M, 3), badness (M,), inliers (M,) or None)``, that look replaces :class:`Polish`'s random
-    rounds (revision 15: the filter's grids, ``MonteCarloLocalizer._grid_look``). With
+    filter's (models without). With ``look``, a callable ``look(seeds (K, 3)) -> (poses (M, 3), badness
+    (M,), inliers (M,) or None)`` (the filter's grids, ``MonteCarloLocalizer._grid_look``), and
+    ``polish``, the best ``polish.places`` distinct places (:meth:`Polish.seeds`) are searched again
+    around their best particle before the decision, the look's poses near the estimate left out. With
     ``saturated_ratio``, where the filter's inlier share leaves no room for the gain (``current_inliers +
     inlier_gain > 1``), the place with the least badness among those with at least the filter's inlier
     share (less 0.02) is better when its badness is below ``saturated_ratio`` x the filter's. With
     ``rival`` ``(3,)`` (the last better place, moved with the odometry: :class:`LostDetector`), the
     candidates within ``rival_m`` and ``rival_deg`` of it are judged first, and the best of them is the
-    opinion when it is better (revision 15: an MQ-8 at a wrong place met the true place at one update and
-    at the next a look-alike with a few more inliers, and the count of confirmations began again)."""
+    opinion when it is better: a filter at a wrong place can meet the true place at one update and a
+    look-alike with a few more inliers at the next, and the count of confirmations would begin again."""
     cand = np.asarray(candidates, np.float64).reshape(-1, 3)
     far = np.hypot(cand[:, 0] - estimate[0], cand[:, 1] - estimate[1]) > min_distance_m
     cand = cand[far]
@@ -265,25 +258,13 @@ def second_opinion(
         return Opinion(False, np.asarray(estimate, np.float64), math.inf, math.nan, 0)
     bad, inl = score(cand)
     bad = np.asarray(bad, np.float64)
-    rounds = polish.rounds if polish is not None and polish.places > 0 else 0
-    if look is not None and rounds:
+    if look is not None and polish is not None and polish.places > 0:
         order = np.lexsort((bad, -np.asarray(inl))) if inl is not None else np.argsort(bad, kind="stable")
         extra, bad2, inl2 = look(polish.seeds(cand[order]))
         far = np.hypot(extra[:, 0] - estimate[0], extra[:, 1] - estimate[1]) > min_distance_m
         cand = np.vstack([cand, extra[far]])
         bad = np.concatenate([bad, np.asarray(bad2, np.float64)[far]])
         inl = None if inl is None else np.concatenate([np.asarray(inl), np.asarray(inl2)[far]])
-        rounds = 0
-    for r in range(rounds):
-        order = np.lexsort((bad, -np.asarray(inl))) if inl is not None else np.argsort(bad, kind="stable")
-        extra = polish.around(polish.seeds(cand[order]), 0.5**r)
-        far = np.hypot(extra[:, 0] - estimate[0], extra[:, 1] - estimate[1]) > min_distance_m
-        extra = extra[far]
-        if len(extra):
-            bad2, inl2 = score(extra)
-            cand = np.vstack([cand, extra])
-            bad = np.concatenate([bad, np.asarray(bad2, np.float64)])
-            inl = None if inl is None else np.concatenate([np.asarray(inl), np.asarray(inl2)])
     inl = None if inl is None else np.asarray(inl, np.float64)
 
     def verdict(idx: np.ndarray) -> Opinion:
@@ -304,7 +285,7 @@ def second_opinion(
         better = bool(b[j] < badness_ratio * current_badness)
         return Opinion(better, c[j], float(b[j]), math.nan, len(cand))
 
-    if rival is not None:  # the rival confirmed goes before a new place (revision 15)
+    if rival is not None:  # the rival confirmed goes before a new place
         rival = np.asarray(rival, np.float64).reshape(3)
         near = (np.hypot(cand[:, 0] - rival[0], cand[:, 1] - rival[1]) <= rival_m) & (
             np.abs(wrap_angle(cand[:, 2] - rival[2])) <= math.radians(rival_deg)
@@ -360,8 +341,6 @@ class LostDetector:
         polish_per_place: int,
         polish_sigma_xy_m: float,
         polish_sigma_yaw_deg: float,
-        polish_grid: bool,
-        rival_first: bool,
         opinion_inlier_gain: float,
         opinion_badness_ratio: float,
         saturated_badness_ratio: float | None,
@@ -373,23 +352,16 @@ class LostDetector:
         consistent_m: float,
         max_misses: int,
         doubt_ratio: float,
-        doubt_opinions: bool,
         doubt_inlier_gain: float,
         history_updates: int,
         history_margin: float,
         history_min_inliers: float,
-        history_in_probation: bool,
-        history_skips_suspicion: bool,
     ):
         self.watch = watch
         self.history_updates = int(history_updates)
         self.history_margin = float(history_margin)
         self.history_min_inliers = float(history_min_inliers)
-        self.history_in_probation = bool(history_in_probation)
-        self.history_skips_suspicion = bool(history_skips_suspicion)
-        self.in_probation = False  # the current update is one of the probation's
         self.doubt_ratio = float(doubt_ratio)
-        self.doubt_opinions = bool(doubt_opinions)
         self.doubt_inlier_gain = float(doubt_inlier_gain)
         self.second_opinion = bool(second_opinion)
         self.opinion_top = int(opinion_top)
@@ -397,8 +369,6 @@ class LostDetector:
         self.polish_places = int(polish_places)
         self.polish_per_place = int(polish_per_place)
         self.polish_sigma = (float(polish_sigma_xy_m), float(polish_sigma_yaw_deg))
-        self.polish_grid = bool(polish_grid)
-        self.rival_first = bool(rival_first)
         self.opinion_inlier_gain = float(opinion_inlier_gain)
         self.opinion_badness_ratio = float(opinion_badness_ratio)
         self.saturated_badness_ratio = (
@@ -477,9 +447,8 @@ class LostDetector:
         last better place to where this update should find it). Returns ``(lost, vetoed)``."""
         suspicious = self.watch.update(best, inliers)
         probation = self._probation > 0
-        self.in_probation = probation
         self._probation = max(0, self._probation - 1)
-        doubt = self.doubt_opinions and self.watch.last_ratio < self.doubt_ratio  # (False when NaN)
+        doubt = self.watch.last_ratio < self.doubt_ratio  # (False when NaN)
         if not (suspicious or probation or doubt):
             self._streak_reset()
             return False, False

@@ -177,7 +177,7 @@ class LikelihoodFieldModel(ScoringModel):
 
 # bytes a surface voxel takes in a k-d tree: its centre (3 float64), which the tree shares, and 24 for the
 # tree's index and nodes (scipy's cKDTree: the resident memory grew by 24 B a voxel beyond the centres
-# when a tree of 3 M random points was built, 2026-12-04)
+# when a tree of 3 M random points was built)
 FIELD_BYTES_PER_VOXEL = 48
 
 
@@ -390,7 +390,7 @@ def make_model(name: str, caster, settings, mesh_map) -> ScoringModel:
     if name == "histogram":
         kernel = ParticleRenderer(caster, margin_m=max(o.max_range_m, 1.0))
         return HistogramModel(kernel, o.histogram_bins, o.max_range_m, o.histogram_sigma)
-    if name == "likelihood_field" and hasattr(mesh_map, "reserve"):  # a map within a memory budget
+    if name == "likelihood_field" and mesh_map.budgeted:  # a map within a memory budget
         return TiledLikelihoodFieldModel(
             mesh_map, voxel_m=o.field_voxel_m, sigma_m=o.field_sigma_m, weight=o.field_weight
         )

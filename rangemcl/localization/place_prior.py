@@ -1,28 +1,28 @@
 """The place prior: where in the map, and facing which way, could this scan have been taken?
 
 Global localization in a town-sized map fails when the few particles that land near the true pose are
-outnumbered by look-alike places (README, issue 13). The prior points the particles at the places that
-already look right, from the map alone:
+outnumbered by look-alike places. The prior points the particles at the places that already look right,
+from the map alone:
 
 * **Map side, once per map** (:meth:`PlacePrior.build`): on a grid of ``cell_m`` over the drivable area, a
   virtual sensor casts horizontal rays all around (``bins`` azimuths) at a few heights above the map's
   ground; each azimuth keeps the nearest hit (capped at ``max_range_m``). The result is a *profile*: the
   distance to the nearest structure in every direction, in two height bands: **high** (``high_heights_m``,
-  2.2-3.4 m: above parked cars, which differ from drive to drive and hide the facades in the low band;
-  measured on a town_small test drive: true place first for 64 % of the scans against 16 % with the low
-  band) and **low** (``heights_m``, 0.6-1.4 m: for sensors that see nothing above their own height, such as
-  the MQ-8). Stored quantised to ``quant_m`` (one byte per azimuth and band) in the map folder
-  (``place_prior.npz``, with a version stamp and a key of the map and the parameters, rebuilt when either
-  changes).
+  2.2-3.4 m: above parked cars, which differ from drive to drive and hide the facades in the low band,
+  so the high band ranks the true place first for several times as many scans) and **low**
+  (``heights_m``, 0.6-1.4 m: for sensors that see nothing above their own height, such as an 8-beam
+  sensor whose beams all point below the horizon). Stored quantised to ``quant_m`` (one byte per azimuth
+  and band) in the map folder (``place_prior.npz``, with a version stamp and a key of the map and the
+  parameters, rebuilt when either changes).
 * **A sensor's own top beam** (``beam_deg``, a prior of its own, :func:`beam_params`): a sensor that sees
-  nothing above the parked cars (the MQ-8, all eight beams below the horizon) is left with the low band,
-  where today's parked cars and the mapping drive's hide the facades. Its highest beam passes over
-  the cars a few metres away and reaches the facades (or the road, 63 m out for the MQ-8's −1.57°), so
-  the profile of that beam alone, rendered from the sensor's height at the beam's elevation, is compared
-  instead: measured on the town_large MQ-8 test drive (every 10th scan, ``tools/prior_rank.py``), true
-  place first for 41 % of the scans and within the best 300 for 89 %, aligned yaw error 5.4° at the 90th
-  percentile, against 20 %, 46 % and 144° with the low band (``--beam off``). Stored beside the band
-  prior (``place_prior_beam*.npz``, one per beam elevation and sensor height).
+  nothing above the parked cars (all its beams below the horizon) is left with the low band, where
+  today's parked cars and the mapping drive's hide the facades. Its highest beam passes over the cars a
+  few metres away and reaches the facades (or the road, some 60 m out for a beam 1.5° below the horizon),
+  so the profile of that beam alone, rendered from the sensor's height at the beam's elevation, is
+  compared instead: it ranks the true place first about twice as often as the low band, and its
+  aligned yaw is within a few degrees where the low band's is often far off
+  (``tools/prior_rank.py`` measures both on a drive). Stored beside the band prior
+  (``place_prior_beam*.npz``, one per beam elevation and sensor height).
 * **Scan side, every search update** (:func:`scan_profile`): the scan's points whose height above the
   ground lies in a band (``high_band_m``, ``band_m``), or for a beam prior whose elevation lies within
   ``beam_tol_deg`` of the beam's, give, per azimuth bin, the nearest horizontal distance. Bins with no
@@ -105,8 +105,8 @@ class PriorParams:
         return np.uint8 if self.levels <= 255 else np.uint16
 
     def key_dict(self) -> dict:
-        """The parameters as the cache key sees them (a band prior's as before the beam prior existed, so
-        that stored ones stay valid)."""
+        """The parameters as the cache key sees them: a band prior's without the beam fields, which do not
+        apply to it (so band priors stored without them keep their key)."""
         d = asdict(self)
         if self.beam_deg is None:
             for k in ("beam_deg", "beam_height_m", "beam_tol_deg"):
@@ -120,7 +120,7 @@ class PriorParams:
         return f"place_prior_beam{self.beam_deg:+.2f}_h{self.beam_height_m:.2f}.npz"
 
 
-BEAM_MAX_RANGE_M = 100.0  # a beam prior's profiles reach this far (the MQ-8's top beam: the road at 63 m)
+BEAM_MAX_RANGE_M = 100.0  # a beam prior's profiles reach this far (a beam 1.5° down meets the road ~60 m out)
 
 
 def beam_params(base: PriorParams, beam_deg: float, sensor_height_m: float) -> PriorParams:
@@ -192,8 +192,9 @@ def scan_profile(
     *levelled* sensor frame (x forward); bin ``i`` spans azimuths ``[−π + iΔ, −π + (i+1)Δ)``. Returns
     ``(profile (2, B), known (2, B) bool)``; for a beam prior (``params.beam_deg``) one row, of the
     points within ``beam_tol_deg`` of the beam's elevation: ``elevation_deg`` ``(M,)`` gives each point's
-    elevation in the sensor's own frame (before levelling, which tilts a ring by the roll and pitch:
-    0.6° on the test drives, more than half the MQ-8's ring spacing), else it is read from ``points``."""
+    elevation in the sensor's own frame (before levelling, which tilts a ring by the roll and pitch: a
+    fraction of a degree can be half the ring spacing of a sensor with few beams), else it is read from
+    ``points``."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
     finite = np.isfinite(p).all(axis=1)
     p = p[finite]
@@ -242,7 +243,7 @@ class PlacePrior:
         if self.profiles.shape != (len(self.xy), params.rows, params.bins) or len(self.xy) == 0:
             raise InputError(f"place prior: {len(self.xy)} cells but profiles of shape {self.profiles.shape}")
         # the encoded value of each quantised range: a profile's spectra are computed from these at match
-        # time, a chunk of cells at a time (kept whole they took 280 MB for town_large's 24,000 cells)
+        # time, a chunk of cells at a time (kept whole they take about 12 KB a cell: 280 MB for 24,000 cells)
         self._table = _encode(np.arange(params.levels + 1, dtype=np.float64) * params.quant_m)
         self._coarse: np.ndarray | None = None  # the two-stage match's coarse profiles, made on first use
         self._tree = None  # a k-d tree of the cell centres (cell_tree), made on first use
@@ -504,7 +505,7 @@ def load_or_build(
     params.check()
     xy = grid_cells(area_corners, area_cell_m, params.cell_m)
     key = prior_key(mesh_map, xy, params)
-    budget = hasattr(mesh_map, "update")  # a map seen within a memory budget
+    budget = mesh_map.budgeted  # a map seen within a memory budget
     src = getattr(mesh_map, "source_dir", None)
     path = None if src is None else Path(src) / params.file_name
     spare = None if fallback_dir is None else Path(fallback_dir) / params.file_name

@@ -1,4 +1,4 @@
-"""Scan-to-mesh refinement of a converged filter's pose (issue 19).
+"""Scan-to-mesh refinement of a converged filter's pose.
 
 A converged cloud of 100 particles places the car only as well as its particles happen to sit: with the
 odometry 3 % off, every prediction lands 3 % of the step short or long and the weighting pulls the cloud
@@ -11,8 +11,8 @@ back only by resampling, so the estimate lags by decimetres. Here the scan itsel
   ray (projective association, re-cast at every iteration);
 * rays whose map hit lies lower than ``min_hit_height_m`` above the ground take no part when enough others
   do: parked cars and people change between the mapping drive and today's, and a parked car's front or
-  back, often the only surface across a street, dragged the pose along it (HDL-64E on ``town_large``,
-  tracking: 0.052 m RMSE with every hit, 0.019 m without the lowest 2 m);
+  back, often the only surface across a street, drags the pose along it (a sensor that sees only the
+  lowest metres keeps every hit);
 * Gauss-Newton on ``(x, y, yaw)`` (height, roll and pitch stay with the ground grid and the IMU), Huber
   weights, a few iterations;
 * only the directions the scan constrains move: the normal equations are solved in the eigenbasis of
@@ -21,11 +21,11 @@ back only by resampling, so the estimate lags by decimetres. Here the scan itsel
   left where the particles put it;
 * a weakly constrained direction (information from ``min_information`` up to ``weak_information``) moves
   only by small steps (at most ``weak_step_m``; a larger step along it is left out, ``Refinement.held``):
-  an 8-beam scan's few rays on one low surface across a street (a vehicle just before a mapped surface)
-  held a direction at 13 and pulled the pose 0.2 m along the street at each update (MQ-8 on
-  ``town_large``, revision 15), while the few-centimetre steps that a 3 % wheel error asks for along a
-  corridor are taken (the localizer's settings turn the band on, revision 17; revision 16 raised the
-  floor to 25 instead, which also stopped those).
+  a sparse scan's few rays on one low surface across a street (a vehicle just in front of a mapped
+  surface) can constrain a direction just above the floor and pull the pose decimetres along the street
+  at each update, while the few-centimetre steps that a wheel error of a few per cent asks for along a
+  corridor are still taken (raising ``min_information`` to the band's top instead would stop those
+  too).
 
 :class:`ScanRefiner` returns the refined pose with what it rests on; the filter decides whether to take it
 (:class:`rangemcl.localization.filter.MonteCarloLocalizer`: a correction outside the cloud's own spread

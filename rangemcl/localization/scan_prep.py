@@ -6,13 +6,13 @@ Ray selection (``sampling``): ``points`` draws evenly over the valid points; ``e
 elevation bands (a sensor whose beams crowd the road near the car still sends rays farther and higher);
 ``structure`` gives the road (points within ``STRUCTURE_M`` of the sensor's ground) at most
 ``ground_share`` of the rays and what stands on it the rest, each part evenly over the elevation bands:
-500 rays drawn evenly over an HDL-64E's points are mostly road, which fits almost anywhere. Of what stands
-on the road, ``tall_share`` goes to points at least ``tall_m`` above the ground (facades above the parked
-cars) and the rest to the points below: a sensor whose beams point down (an HDL-64E: most of its 2° bands
-meet structure only within 10-15 m of the car) otherwise spends most of its structure rays on parked cars,
-which differ between the mapping drive and today; measured on a town_large drive, an HDL-64E's true pose
-then scored worse than a look-alike street for 15 updates beside a row of cars the map lacks (README,
-issue 13, revision 9). A structure part without points gives its share to the other (the road keeps its own).
+500 rays drawn evenly over the points of a sensor whose beams crowd the road (such as an HDL-64E) are
+mostly road, which fits almost anywhere. Of what stands on the road, ``tall_share`` goes to points at
+least ``tall_m`` above the ground (facades above the parked cars) and the rest to the points below: a
+sensor whose beams point down (most of an HDL-64E's 2° bands meet structure only within 10-15 m of the
+car) otherwise spends most of its structure rays on parked cars, which differ between the mapping drive
+and today, and beside a row of cars the map lacks its true pose can score worse than a look-alike street
+for many updates. A structure part without points gives its share to the other (the road keeps its own).
 """
 
 from __future__ import annotations

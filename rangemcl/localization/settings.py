@@ -261,9 +261,9 @@ class ConvergenceSettings:
     one 30-degree sector of yaw) get a dense local grid search around their best particle on each scan
     (a coarse grid of ±2 m and ±8 degrees on every third ray, then a fine one). 0: no polish."""
     polish_keep: int = 8
-    """The best this many poses of each polished hypothesis's fine grid join the cloud; 0: no polish. The
-    range likelihood is sharply peaked, so without the polish a place is judged by particles off its
-    peak."""
+    """`method: hypotheses`: the best this many poses (at least 1) of each polished hypothesis's fine grid
+    join the cloud. The range likelihood is sharply peaked, so without the polish a place is judged by
+    particles off its peak; more poses hold the peak's neighbourhood too, at the cost of a larger cloud."""
 
 
 @dataclass
@@ -309,27 +309,17 @@ class RecoverySettings:
     """Particles scored on each of those places, spread evenly over its prior cell and around its aligned
     yaw."""
     polish_places: int = 16
-    """Best distinct places (at least 3 m apart) that get a second look around their best particle;
-    0: no second look."""
+    """Best distinct places (at least 3 m apart) that get a second look around their best particle: the
+    search's grids, a coarse one (±2 m, ±8 degrees) on every third ray, then a fine one around its best
+    pose. 0: no second look, nor particles around the last better place or in the look at the past."""
     polish_per_place: int = 48
-    """Particles per place in each round of the random second look, also drawn around the last better
-    place and in the look at the past (`history_updates`)."""
+    """Particles drawn around the last better place (moved with the odometry) when it is scored again,
+    and in each round of the look at the past (`history_updates`) around a better place."""
     polish_sigma_xy_m: float = 0.6
-    """Spread in m (normal, in x and y) of the random second look's particles; three rounds, each around
-    the best so far with half the last spread."""
+    """Spread in m (normal, in x and y) of the `polish_per_place` particles; the look at the past takes
+    three rounds, each around the best so far with half the last spread."""
     polish_sigma_yaw_deg: float = 3.0
-    """Spread in degrees of yaw of the random second look's particles (as `polish_sigma_xy_m`)."""
-    polish_grid: bool = True
-    """The second look uses the search's grids instead of the random rounds: a coarse one (±2 m,
-    ±8 degrees) on every third ray, then a fine one around its best pose."""
-    rival_first: bool = True
-    """The last better place (moved with the odometry) is judged first and confirmed while it is still
-    better, even where another place fits a little more, so that a look-alike does not restart the count
-    of confirmations."""
-    doubt_opinions: bool = True
-    """Ask for a second opinion also at every update in doubt (inlier share below `doubt_ratio` of its
-    running level), not only in a suspicion or the probation: a wrong place often fits later scans only
-    partly, without falling as low as the watch's limit."""
+    """Spread in degrees of yaw of the `polish_per_place` particles (as `polish_sigma_xy_m`)."""
     doubt_inlier_gain: float = 0.25
     """At an update in doubt outside a suspicion and the probation: the inlier share a better place must
     gain, in [0, 1]. Stricter than `opinion_inlier_gain`: in a changed street the true pose fits less
@@ -348,7 +338,10 @@ class RecoverySettings:
     """A better place must also explain the recent past: its mean inlier share over the far rays of this
     many previous updates' scans (moved back along the odometry) must reach the filter's best particle's
     less `history_margin`. A street that changed since the mapping drive fits the true pose badly now but
-    not over the past. 0: off."""
+    not over the past. The look leaves out the scans of the current suspicion (a vehicle alongside that
+    hides the far rays at the true pose would otherwise let a distant place fit that past nearly as
+    well), and is taken in the probation too (without it a correct convergence can be called lost by a
+    look-alike soon after). 0: off."""
     history_margin: float = 0.05
     """Share in [0, 1] by which a better place may fit the past worse than the filter's best particle and
     still count as better."""
@@ -356,14 +349,6 @@ class RecoverySettings:
     """The look at the past is taken only while the filter's best particle still fits at least this share
     of the far rays, in [0, 1]: below it the car rather jumped (a kidnap) than the street changed, and the
     past would hold a true new place back."""
-    history_in_probation: bool = True
-    """Take the look at the past also in the probation after a convergence. The search chose its place on
-    those same past scans, so the past can favour a wrong convergence; without the look, though, a
-    correct convergence can be called lost by a look-alike soon after."""
-    history_skips_suspicion: bool = True
-    """The look at the past leaves out the scans of the current suspicion (its bad updates and the one
-    before them): a vehicle alongside that hides the far rays at the true pose would otherwise let a
-    distant place fit that past nearly as well."""
     opinion_min_range_m: float = 5.0
     """The second opinion compares only the rays measured at least this far, in m: near rays, above all
     those on a vehicle alongside, fit some wall almost anywhere and let a far-off place fit better than the
@@ -379,13 +364,17 @@ class RecoverySettings:
     a consistent better place this many times in a row."""
     opinion_hits: int = 2
     """In a suspicion: lost when the second opinion finds a better place this many times in a row, each
-    where the last one moved with the odometry (within `convergence.separation_m`)."""
+    where the last one moved with the odometry (within `convergence.separation_m`). That place is judged
+    first and confirmed while it stays better, even where another fits a little more, so that a
+    look-alike does not restart the count."""
     opinion_max_misses: int = 2
     """Updates without a better place that the count of confirmations survives in between (the rival moves
     on with the odometry meanwhile); one more drops it."""
     doubt_ratio: float = 0.8
     """An update is in doubt when its inlier share is below this factor × its running level: such an
-    update is not refined and, with `doubt_opinions`, gets a second opinion."""
+    update is not refined and gets a second opinion, not only in a suspicion or the probation (a wrong
+    place often fits later scans only partly, without falling as low as the watch's limit). Higher: more
+    opinions asked (each costs a place prior match and a second look), and fewer updates refined."""
 
 
 @dataclass
@@ -468,23 +457,16 @@ class InitSettings:
     where parked cars hide the facades."""
     inject_share: float = 0.05
     """While searching: fresh particles drawn from the prior's best places for each update's scan, as a
-    share in [0, 1] of the cloud; 0: none."""
+    share in [0, 1] of the cloud, which they also take of the weight together; 0: none."""
     inject_top: int = 30
     """The prior's best places for the scan that the fresh particles are drawn from (at most 2 % of its
     cells, at least 20)."""
     inject_below_share: float = 0.9
     """Injection runs only while no hypothesis holds more than this share of the weight, in [0, 1]
-    (1: always), so that a look-alike re-injected at every update no longer caps the test once one
-    hypothesis dominates."""
-    inject_weight: float | None = None
-    """Share in [0, 1] of the weight the injected particles take together; `None`: `inject_share`. It is
-    the prior odds the search gives a place it has not tested yet, and while injected it caps the
-    sequential test: a rival re-injected every update at weight w, fitting each scan rho times as well as
-    the leader, holds about w / places / (1 − rho) of the weight."""
-    inject_held: bool = True
-    """False: fresh particles go only to places the search does not hold yet (no held particle within
-    about `convergence.cluster_m` and 20 degrees); with a tiny `inject_weight` that lifts the cap from the
-    start, but weak evidence can then converge on a wrong street that it favours for a stretch."""
+    (1: always). The injected weight is the prior odds the search gives a place it has not tested yet,
+    and while injected it caps the sequential test: a rival re-injected every update at weight w
+    (`inject_share`), fitting each scan rho times as well as the leader, holds about w / places / (1 − rho)
+    of the weight. Lower: the cap is lifted sooner, and a place the prior offers late is missed sooner."""
 
 
 @dataclass
@@ -543,6 +525,7 @@ class LocalizerSettings:
             "convergence.kld_bin_xy_m": c.kld_bin_xy_m,
             "convergence.kld_bin_yaw_deg": c.kld_bin_yaw_deg,
             "convergence.min_search_particles": c.min_search_particles,
+            "convergence.polish_keep": c.polish_keep,
             "init.prior_top": self.init.prior_top,
             "init.prior_cell_m": self.init.prior_cell_m,
             "init.inject_top": self.init.inject_top,
@@ -608,7 +591,6 @@ class LocalizerSettings:
             "convergence.min_distance_m": c.min_distance_m,
             "convergence.prune_nats": c.prune_nats,
             "convergence.polish_hypotheses": c.polish_hypotheses,
-            "convergence.polish_keep": c.polish_keep,
             "convergence.separation_m": c.separation_m,
             "recovery.inlier_factor": r.inlier_factor,
             "recovery.inlier_residual_factor": r.inlier_residual_factor,
@@ -663,8 +645,8 @@ class LocalizerSettings:
             raise InputError(
                 f"{where}: recovery.saturated_badness_ratio must be in (0, 1) or null, got {sat}"
             )
-        for key in ("prior_share", "inject_share", "inject_below_share", "inject_weight"):
-            if getattr(self.init, key) is not None and not 0 <= getattr(self.init, key) <= 1:
+        for key in ("prior_share", "inject_share", "inject_below_share"):
+            if not 0 <= getattr(self.init, key) <= 1:
                 raise InputError(f"{where}: init.{key} must be in [0, 1], got {getattr(self.init, key)}")
         if m.calibration not in ("estimator", "particles"):
             raise InputError(

@@ -212,10 +212,10 @@ def test_the_look_at_the_past_moves_poses_back_along_the_odometry(world, tmp_pat
 
 
 def test_the_look_at_the_past_leaves_out_the_scans_of_the_suspicion(world):
-    """Revision 15 (recovery.history_skips_suspicion): the scans of the watch's current run of bad updates
-    (here 8 scans taken 3 m to the side of where the odometry says, as if hidden or changed) are left out
-    of the look at the past, so the true pose fits the past before them; with the skip off they drag its
-    fit down."""
+    """The scans of the watch's current run of bad updates (here 8 scans taken 3 m to the side of where
+    the odometry says, as if hidden or changed) are left out of the look at the past, so the true pose
+    fits the past before them; without a suspicion those scans are part of the past and drag its fit
+    down."""
     _town, _caster, _m, path, _geo = world
 
     def seen(k):  # the last 8 scans: not the truth's
@@ -224,25 +224,24 @@ def test_the_look_at_the_past_leaves_out_the_scans_of_the_suspicion(world):
     loc, _s = _tracking_with_history(world, 20, 1, 39, seen)
     loc.lost.watch.bad_updates = 8  # the suspicion's updates (the current one and the 7 before)
     skipped = loc._history_inliers(path[39][None])[0]
-    loc.lost.history_skips_suspicion = False
+    loc.lost.watch.bad_updates = 0  # no suspicion: the 8 scans are the most recent past
     kept = loc._history_inliers(path[39][None])[0]
     assert skipped > 0.9 and kept < skipped - 0.1
     # the same 20 scans whatever the suspicion's length: with a suspicion longer than the depth kept
     # beyond the look, fewer than half of them remain and there is no verdict
-    loc.lost.history_skips_suspicion = True
     loc.lost.watch.bad_updates = 30
     assert np.isnan(loc._history_inliers(path[39][None])).all()
 
 
-def test_the_look_at_the_past_is_taken_in_the_probation_unless_left_out(world):
+def test_a_better_place_must_also_explain_the_past_while_the_filter_still_fits(world):
     """A filter converged 12 m down the street from the car, asked for a second opinion, finds the true
-    place; the look at the past (recovery.history_updates) is taken after the probation, where the true
-    place, which explained the past scans, stays better, and in the probation after a convergence
-    (revision 14; revision 13 left it out there: history_in_probation false)."""
+    place, and the look at the past (recovery.history_updates) is taken, where the true place, which
+    explained the past scans, stays better; while the filter's own place fits fewer far rays than
+    recovery.history_min_inliers (a car that jumped rather than a changed street) the look is not
+    taken."""
     town, caster, _m, path, geo = world
     # (history_min_inliers 0: the look is asked at any fit of the filter's own place)
     loc, _s = _tracking_with_history(world, 10, 1, 24, history_min_inliers=0.0)
-    assert loc.lost.history_in_probation is True  # the default (revision 14)
     pts = scan_at(town, caster, geo, path[24])
     rays = loc.select_rays(pts, loc.rng, sensor_height_m=loc.sensor_height_m)
     wrong = path[24] + np.array([12.0, 0.0, 0.0])
@@ -252,18 +251,15 @@ def test_the_look_at_the_past_is_taken_in_the_probation_unless_left_out(world):
     real = loc._history_inliers
     loc._history_inliers = lambda p: (looks.append(len(p)), real(p))[1]
 
-    def ask(probation: bool):
+    def ask() -> int:
         looks.clear()
-        loc.lost.in_probation = probation
         found = loc._second_opinion(rays, np.asarray(pts, np.float64), None, 0.15)
         assert found.better and np.hypot(*(found.pose[:2] - path[24][:2])) < 4.0  # (not 12 m off)
         return len(looks)
 
-    assert ask(probation=True) > 0
-    assert ask(probation=False) > 0
-    loc.lost.history_in_probation = False  # revision 13
-    assert ask(probation=True) == 0
-    assert ask(probation=False) > 0
+    assert ask() > 0
+    loc.lost.history_min_inliers = 1.0  # no place fits every far ray: the look is never taken
+    assert ask() == 0
 
 
 def test_prepare_rays_deskews_with_the_frame_motion():
@@ -372,10 +368,14 @@ def test_settings_are_checked(world):
     with pytest.raises(InputError, match="resample_neff_ratio"):
         s.check()
     s = LocalizerSettings()
-    s.init.inject_weight = 1.5
-    with pytest.raises(InputError, match="inject_weight"):
+    s.init.inject_share = 1.5
+    with pytest.raises(InputError, match="inject_share"):
         s.check()
-    s.init.inject_weight = None  # the injected particles' count share
+    s.init.inject_share = 0.05
+    s.convergence.polish_keep = 0  # (convergence.polish_hypotheses: 0 turns the polish off)
+    with pytest.raises(InputError, match="polish_keep"):
+        s.check()
+    s.convergence.polish_keep = 8
     s.check()
     for bad in (0.0, 1.0, float("nan")):
         s.recovery.saturated_badness_ratio = bad
@@ -549,7 +549,7 @@ def test_structure_sampling_caps_the_roads_share_of_the_rays():
 
 
 def test_structure_sampling_gives_the_tall_structure_its_share():
-    """Revision 9: of the structure rays, tall_share from points at least tall_m above the ground (the
+    """Of the structure rays, tall_share from points at least tall_m above the ground (the
     facades over the parked cars), however many more points the cars near the sensor return."""
     rng = np.random.default_rng(1)
 
@@ -571,10 +571,10 @@ def test_structure_sampling_gives_the_tall_structure_its_share():
 
     n, tall, road_share = shares(tall_share=0.6)
     assert n == 500 and abs(tall - 0.8 * 0.6) < 0.06 and abs(road_share - 0.2) < 0.05
-    _, tall_rev8, _ = shares(tall_share=0.0)  # all structure alike, band by band
-    assert tall_rev8 < tall - 0.1
+    _, tall_alike, _ = shares(tall_share=0.0)  # all structure alike, band by band
+    assert tall_alike < tall - 0.1
     # no tall points (a sensor whose beams all point down): the low structure keeps the structure share
-    # (revision 8's draw exactly)
+    # (the draw of tall_share: 0 exactly)
     low_only = np.vstack([road, cars])
     a, b = (
         prepare_rays(
@@ -625,7 +625,7 @@ def test_a_sensor_below_the_horizon_is_matched_with_its_top_beams_prior(world, b
 
 
 def test_the_search_polishes_its_hypotheses_onto_the_likelihoods_peak(world):
-    """Revision 14: a hypothesis whose particles all lie 1.5 m ahead, 0.8 m aside and 6° off the true pose
+    """A hypothesis whose particles all lie 1.5 m ahead, 0.8 m aside and 6° off the true pose
     gets poses on the likelihood's peak (within a fine grid step of the truth, fitting better than any of
     its particles); the seed's weight before the scan is shared with them (the hypothesis gains weight
     only by fitting better); without the polish the cloud holds nothing near the truth."""
@@ -677,7 +677,7 @@ def test_the_search_polishes_its_hypotheses_onto_the_likelihoods_peak(world):
 
 
 def test_the_second_opinions_grid_look_lands_on_the_likelihoods_peak(world):
-    """Revision 15: the second opinion's look around a place (MonteCarloLocalizer._grid_look: the search's
+    """The second opinion's look around a place (MonteCarloLocalizer._grid_look: the search's
     coarse then fine grid) from a seed 1.5 m ahead, 0.8 m aside and 6° off the true pose returns a pose
     within a fine step of the truth, fitting best, and one fine grid per seed."""
     town, caster, m, path, geo = world

@@ -1,4 +1,4 @@
-"""Online odometry calibration (issue 19): the scale and gyro-bias estimator against trajectories whose
+"""Online odometry calibration: the scale and gyro-bias estimator against trajectories whose
 truth is known, including standing still, reversing and turning on the spot; and, through the filter, a
 3 % wheel scale error recovered in a synthetic corridor with cross walls."""
 
@@ -164,7 +164,7 @@ def test_a_three_percent_wheel_error_is_calibrated_away_in_a_corridor(corridor):
 
 
 def test_scale_as_particle_state_is_learned_only_without_the_refinement(corridor):
-    """The alternative of issue 19 (``motion.calibration: particles``): each particle carries its own scale
+    """The alternative estimator (``motion.calibration: particles``): each particle carries its own scale
     and the weighting selects. With motion noise below the wheel's error (1 % of the distance) and no
     refinement it learns the 3 % error; with the refinement, which moves the whole cloud onto the scan
     at every update, the particles' positions no longer carry their scale's effect and the selection is

@@ -1,4 +1,4 @@
-"""Scan-to-mesh refinement (issue 19): a known offset of a scan against a synthetic mesh is recovered to a
+"""Scan-to-mesh refinement: a known offset of a scan against a synthetic mesh is recovered to a
 centimetre; a corridor's axis, which its walls do not constrain, is left alone; through the filter, a
 refinement that pulls towards a place outside the particle cloud is refused and counted."""
 
@@ -167,10 +167,9 @@ def test_a_few_rays_on_one_low_surface_do_not_move_the_pose_along_the_street():
     """An 8-beam scan (MQ-8, 500 rays) sees nothing above 2 m, so all its hits take part; in a street of
     walls the only surface across the street is a low barrier, which in the scan stands 0.3 m further on
     (as an unmapped vehicle close before a mapped surface can). Its information along the street (16) is
-    above the floor (10) but in the weak band (up to 25): the localizer's settings (revision 17) hold the
-    0.3 m step back and the street's axis stays; the plain refiner (revision 15's settings) lets the
-    barrier pull the pose the whole 0.3 m, as on ``town_large`` (MQ-8 from frame 467: two pulls of 0.19 and
-    0.23 m at along-street information 13.3 and 13.4)."""
+    above the floor (10) but in the weak band (up to 25): the localizer's settings hold the 0.3 m step
+    back and the street's axis stays; a refiner without the weak band lets the barrier pull the pose the
+    whole 0.3 m."""
     map_caster, scan_caster = _street_with_a_low_box(9.0, 0.3)
     d, r = _rays(scan_caster, np.zeros(3), spec="mq-8", count=500)
     held = scan_refiner(map_caster, LocalizerSettings().refine).refine(
@@ -208,13 +207,13 @@ def test_after_a_convergence_the_low_hits_pull_in_an_offset_along_the_street():
     """A cloud that has just converged 0.4 m off along a street of tall walls (as a global search can
     leave it): in the first updates after the convergence the refinement uses the low surfaces too (here
     a low barrier, the same in map and scan, the only thing across the street) and pulls the estimate
-    in; a tracking start taken as exact leaves the street's axis to the particles, as revision 6 did.
-    The rays are drawn with ``tall_share: 0`` (revision 8's draw): with revision 9's default, 60 % of the
+    in; a tracking start taken as exact leaves the street's axis to the particles.
+    The rays are drawn with ``tall_share: 0`` (all structure alike): with the default, 60 % of the
     structure rays go to the walls and the barrier's few rays leave the along-street direction below the
     refiner's information floor, so the offset is not pulled in (the estimate stays 0.41 m off); a street
-    constrained along its axis by low surfaces only is where revision 9 gives up this pull. 3000 rays: with
-    1000 the barrier's information along the street (11) lies in the weak band (10-25, revision 17), where
-    a 0.4 m step is held back."""
+    constrained along its axis by low surfaces only is where the default's tall share gives up this pull.
+    3000 rays: with 1000 the barrier's information along the street (11) lies in the weak band (10-25),
+    where a 0.4 m step is held back."""
     parts = [
         meshgen.grid_patch((-60.0, -10.0, 0.0), (120.0, 0, 0), (0, 20.0, 0), 30, 5),
         meshgen.box((120.0, 0.5, 6.0), (0.0, -5.0, 3.0), cell_m=4.0),
