@@ -7,8 +7,8 @@ from pathlib import Path
 import typer
 
 from rangemcl import __version__
-from rangemcl.cliutil import run_app, version_option
-from rangemcl.mapping.coarse import COARSE_RATIO  # light: Open3D is imported where a tile is decimated
+from rangemcl.common.cliutil import run_app, version_option
+from rangemcl.maps.coarse import COARSE_RATIO  # light: Open3D is imported where a tile is decimated
 
 app = typer.Typer(
     name="rangemcl",
@@ -79,8 +79,8 @@ def _bag_options(
     truth_topic: str | None = None,
 ):
     """The bag-reading options of a command, or None when none is given."""
+    from rangemcl.datasets.rosbag import BagOptions
     from rangemcl.errors import InputError
-    from rangemcl.ros.bag import BagOptions
 
     mount = None
     if sensor_to_base is not None:
@@ -191,15 +191,15 @@ def sweep(
     import numpy as np
 
     from rangemcl import meshgen
-    from rangemcl.plots import save_range_image_png
+    from rangemcl.datasets.scanio import write_scan_bin
     from rangemcl.rangeimage import RangeImageGeometry
     from rangemcl.raycast import RayCaster, resolve_device
-    from rangemcl.scanio import write_scan_bin
     from rangemcl.sensors import load_spec
+    from rangemcl.viz.plots import save_range_image_png
 
     _at_least("--seed", seed, 0)
     _at_least("--threads", threads, 0)
-    from rangemcl.outdir import check_output_files, output_files
+    from rangemcl.common.outdir import check_output_files, output_files
 
     _output_dir("--out", out)
     spec = load_spec(sensor)
@@ -283,11 +283,11 @@ def build_map(
     then the place prior of global localization."""
     import sys
 
+    from rangemcl.common.outdir import MAP_MARKERS, output_folder
     from rangemcl.config import load_config
     from rangemcl.errors import InputError
     from rangemcl.mapping.pipeline import BACKENDS, WORK_DIR, MapSettings
     from rangemcl.mapping.pipeline import build_map as run
-    from rangemcl.outdir import MAP_MARKERS, output_folder
 
     settings = load_config(MapSettings, config)
     bag = _bag_options(
@@ -375,7 +375,7 @@ def convert(
     odometry, IMU roll and pitch, and its meta (a simbed drive opens in Foxglove or RViz this way)."""
     import sys
 
-    from rangemcl.convert import convert as run
+    from rangemcl.datasets.convert import convert as run
 
     bag = _bag_options(
         lidar_topic, imu_topic, odom_topic, sensor_to_base, poses, point_time_field, scan_stamp, truth_topic
@@ -411,10 +411,10 @@ def import_mesh_cmd(
     level, the place prior)."""
     import math
 
+    from rangemcl.common.outdir import MAP_MARKERS, check_output, output_folder
     from rangemcl.errors import InputError
-    from rangemcl.mapping.meshmap import import_mesh
     from rangemcl.mapping.stream_import import import_mesh_streaming, ply_layout
-    from rangemcl.outdir import MAP_MARKERS, check_output, output_folder
+    from rangemcl.maps.meshmap import import_mesh
 
     if not (math.isfinite(coarse_ratio) and 0.0 <= coarse_ratio <= 1.0):
         raise InputError(f"--coarse-ratio must lie in [0, 1], got {coarse_ratio}")
@@ -422,7 +422,7 @@ def import_mesh_cmd(
     meta = {"source_mesh": str(mesh.resolve())}
     drive_xy = None
     if drive is not None:
-        from rangemcl.mapping.meshmap import read_drive_xy
+        from rangemcl.maps.meshmap import read_drive_xy
 
         drive_xy = read_drive_xy(drive)
         meta["source_drive"] = str(drive.resolve())
@@ -468,7 +468,7 @@ def _place_prior_step(
 
     from rangemcl.config import load_config
     from rangemcl.errors import InputError
-    from rangemcl.mcl import LocalizerSettings, map_place_prior
+    from rangemcl.localization import LocalizerSettings, map_place_prior
 
     settings = load_config(LocalizerSettings, config)
     t0 = time.perf_counter()
@@ -510,7 +510,7 @@ def settings_cmd(
     import yaml
 
     from rangemcl.config import load_config, to_dict
-    from rangemcl.mcl import LocalizerSettings
+    from rangemcl.localization import LocalizerSettings
 
     settings = load_config(LocalizerSettings, config)
     settings.check(str(config) if config is not None else "settings")
@@ -536,8 +536,8 @@ def map_upgrade(map_dir: Path = typer.Argument(..., help="A map folder.")) -> No
     file per tile, its coarse level and an index), in place. The tiles and the index are written first and
     map.yaml last: a run stopped part-way leaves the format-1 map as it was, and running it again
     finishes."""
-    from rangemcl.mapping.meshmap import MeshMap
-    from rangemcl.mapping.store import TileStore
+    from rangemcl.maps.meshmap import MeshMap
+    from rangemcl.maps.store import TileStore
 
     m = MeshMap.load(map_dir)
     if m.format_version >= 2:
@@ -563,8 +563,8 @@ def map_coarse(
     in range do not all fit at full resolution. The index is rewritten last: a run stopped part-way leaves
     the map as it was."""
     from rangemcl.errors import InputError
-    from rangemcl.mapping.coarse import add_coarse_level
-    from rangemcl.mapping.meshmap import read_map_yaml
+    from rangemcl.maps.coarse import add_coarse_level
+    from rangemcl.maps.meshmap import read_map_yaml
 
     version, _doc = read_map_yaml(map_dir)
     if version < 2:
@@ -595,8 +595,8 @@ def map_quality_cmd(
 
     import numpy as np
 
-    from rangemcl.mapping.meshmap import MeshMap, import_mesh
     from rangemcl.mapping.quality import map_quality
+    from rangemcl.maps.meshmap import MeshMap, import_mesh
 
     _positive("--tolerance", tolerance)
     _output_file("--json", json_out)
@@ -604,7 +604,7 @@ def map_quality_cmd(
     t = import_mesh(truth)
     ref = None
     if reference is not None:
-        from rangemcl.dataset import load_sequence
+        from rangemcl.datasets.kitti import load_sequence
 
         seq = load_sequence(reference, require_poses=True)
         every = max(1, len(seq) // 50)  # about 50 scans spread over the drive
@@ -686,8 +686,8 @@ def localize(
 
     from rangemcl.config import load_config
     from rangemcl.errors import InputError
-    from rangemcl.localize import RunOptions, localize_sequence
-    from rangemcl.mcl import LocalizerSettings
+    from rangemcl.localization import LocalizerSettings
+    from rangemcl.localization.pipeline import RunOptions, localize_sequence
 
     _at_least("--seed", seed, 0)
     settings = load_config(LocalizerSettings, config)
@@ -729,7 +729,7 @@ def localize(
         resume=resume,
         map_memory_mb=map_memory,
     )
-    from rangemcl.outdir import RESULT_MARKERS, has_frames, output_folder
+    from rangemcl.common.outdir import RESULT_MARKERS, has_frames, output_folder
 
     if resume and overwrite:
         raise InputError("--resume continues the run in OUT, --overwrite replaces it: give one of them")
@@ -808,8 +808,8 @@ def evaluate(
     """The paper's metrics: success, location and yaw RMSE after convergence, frames to converge."""
     import json
 
-    from rangemcl.atomic import atomic_write
-    from rangemcl.evaluate import evaluate_results
+    from rangemcl.common.atomic import atomic_write
+    from rangemcl.evaluation.metrics import evaluate_results
 
     _at_least("--check-every", check_every, 1)
     _positive("--success-m", success_m)

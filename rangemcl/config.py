@@ -17,9 +17,9 @@ from typing import Any, TypeVar
 
 import yaml
 
-from rangemcl.atomic import atomic_write
+from rangemcl.common.atomic import atomic_write
+from rangemcl.common.yamlio import parse_yaml, read_text
 from rangemcl.errors import InputError
-from rangemcl.yamlio import parse_yaml, read_text
 
 T = TypeVar("T")
 

@@ -28,8 +28,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 import warp as wp
 
+from rangemcl.common.heap import trim_freed_memory
 from rangemcl.errors import InputError
-from rangemcl.heap import trim_freed_memory
 from rangemcl.se2 import invert_rigid, quat_from_matrix
 
 wp.config.log_level = wp.LOG_ERROR  # no banner, no missing-driver notice on CPU machines
@@ -369,7 +369,7 @@ class RayCaster:
         builds tiles in the background); :meth:`insert_mesh` puts it in the scene. ``trim``: give the
         check's temporaries back to the system before the BVH is built, so that the BVH's arrays, which Warp
         allocates larger than it writes, do not land on pages already touched
-        (:func:`rangemcl.heap.trim_freed_memory`; a map's tiles: 7 % less resident memory).
+        (:func:`rangemcl.common.heap.trim_freed_memory`; a map's tiles: 7 % less resident memory).
         ``leaf_size``: triangles per BVH leaf (Warp's default, 4, when None; 8 takes about 13 % less memory
         for the same hits, ``docs/architecture.md``, "Design decisions and why")."""
         name = name or "mesh"

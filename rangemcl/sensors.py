@@ -37,9 +37,9 @@ from typing import Any, NoReturn
 import numpy as np
 import yaml
 
+from rangemcl.common.yamlio import parse_yaml, read_text
 from rangemcl.errors import InputError
 from rangemcl.se2 import transform_from_xyz_rpy, xyz_rpy_from_transform
-from rangemcl.yamlio import parse_yaml, read_text
 
 DEFAULT_MOUNT_XYZ_M = (0.0, 0.0, 1.73)
 """Default sensor position on the car base: 1.73 m above the ground under the rear axle, level."""

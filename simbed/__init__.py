@@ -1,7 +1,7 @@
 """simbed: the MuJoCo + Warp simulation test bed for LiDAR localization (uses rangemcl's ray casting).
 
 Importing it registers the gymnasium environments ``simbed/LocalizationTrial-v0`` and ``simbed/Drive-v0``
-(string entry points: nothing heavy is imported until one is made); see :mod:`simbed.envs`.
+(string entry points: nothing heavy is imported until one is made); see :mod:`simbed.trials.envs`.
 """
 
 import os
@@ -21,11 +21,11 @@ def _register_envs() -> None:
     if "simbed/LocalizationTrial-v0" not in registry:
         register(
             id="simbed/LocalizationTrial-v0",
-            entry_point="simbed.envs:LocalizationTrialEnv",
+            entry_point="simbed.trials.envs:LocalizationTrialEnv",
             max_episode_steps=3000,
         )
     if "simbed/Drive-v0" not in registry:
-        register(id="simbed/Drive-v0", entry_point="simbed.envs:DriveEnv", max_episode_steps=1000)
+        register(id="simbed/Drive-v0", entry_point="simbed.trials.envs:DriveEnv", max_episode_steps=1000)
 
 
 _register_envs()

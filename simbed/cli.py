@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from rangemcl.cliutil import run_app, version_option
+from rangemcl.common.cliutil import run_app, version_option
 from simbed import __version__
 
 app = typer.Typer(
@@ -32,7 +32,7 @@ def make_town(
     overwrite: bool = typer.Option(False, help="Replace a town that OUT (and its files beside it) holds."),
 ) -> None:
     """Generate a town: roads with loops and junctions, terrain, buildings, poles, trees, parked cars."""
-    from simbed.towngen import generate_town
+    from simbed.scenes.towngen import generate_town
 
     info = generate_town(seed, size, out, n_parked_variants=variants, overwrite=overwrite)
     typer.echo(
@@ -105,8 +105,8 @@ def record(
             viz_out=viz_out,
         )
     except KeyboardInterrupt:
+        from rangemcl.datasets.sources import open_source
         from rangemcl.errors import InputError
-        from rangemcl.sources import open_source
 
         try:
             done = len(open_source(out))
@@ -142,7 +142,7 @@ def import_scene(
 ) -> None:
     """Turn a static triangle mesh (a city model, a photogrammetry, a rangemcl map) into a drivable scene:
     the LiDAR sees the whole mesh, the car drives on a height field sampled from its ground."""
-    from simbed.import_scene import import_scene as run
+    from simbed.scenes.import_scene import import_scene as run
 
     r = run(
         world,
@@ -174,9 +174,9 @@ def export_mesh(
     overwrite: bool = typer.Option(False, help="Replace the PLY file (and the route file) that exist."),
 ) -> None:
     """Write the scene's true static geometry (the ground truth of map quality) as PLY."""
-    from rangemcl.outdir import check_output_files, output_files
-    from simbed.geometry import write_ply
-    from simbed.world import World
+    from rangemcl.common.outdir import check_output_files, output_files
+    from simbed.sim.geometry import write_ply
+    from simbed.sim.world import World
 
     files = [out] if route_out is None else [out, route_out]
     check_output_files(files, overwrite=overwrite, what="the exported mesh")  # before the scene is read
@@ -189,7 +189,7 @@ def export_mesh(
     with output_files(files, overwrite=overwrite, what="the exported mesh"):
         write_ply(out, v, f)
         if route_out is not None:
-            from rangemcl.atomic import atomic_write
+            from rangemcl.common.atomic import atomic_write
 
             atomic_write(route_out, "".join(f"{x:.3f} {y:.3f}\n" for x, y in r.points))
     typer.echo(f"wrote {out}: {len(f):,} triangles, {len(v):,} vertices")
@@ -289,7 +289,7 @@ def trials(
     from dataclasses import replace
 
     from rangemcl.errors import InputError
-    from simbed.trials import SuiteConfig, run_suite, suite_settings
+    from simbed.trials.suites import SuiteConfig, run_suite, suite_settings
 
     if compare and not report_only:
         raise InputError("--compare: only with --report-only (run each method with its own --config)")
@@ -314,7 +314,7 @@ def trials(
         else replace(suite_config, settings=suite_settings(Path(c)), method=Path(c).stem)
         for c in compare or ()
     )
-    from rangemcl.outdir import check_output, output_folder
+    from rangemcl.common.outdir import check_output, output_folder
 
     def run():
         return run_suite(
@@ -341,7 +341,7 @@ def trials(
         check_output(out, overwrite=True, kind="suite results", markers=markers)  # writable, ours
         typer.echo(f"continuing the suite folder {out} (--overwrite starts it over)")
         rows = run()
-    else:  # a new folder, or --overwrite: the policy of rangemcl.outdir (nothing left by a failed start)
+    else:  # a new folder, or --overwrite: rangemcl.common.outdir's policy (nothing left by a failed start)
         keep = lambda p: (p / "results.csv").is_file() or any((p / "drives").glob("*/meta.yaml"))  # noqa: E731
         with output_folder(out, overwrite=overwrite, kind="suite results", markers=markers, keep_if=keep):
             rows = run()
@@ -366,18 +366,18 @@ def render(
     """Write a PNG of the scene with the car and actors, or (--scan) of a recorded scan's range image."""
     import numpy as np
 
+    from rangemcl.common.outdir import check_output_files, output_files
     from rangemcl.errors import InputError
-    from rangemcl.outdir import check_output_files, output_files
 
     for option, value in (("--actors", actors), ("--variant", variant), ("--seed", seed)):
         if value < 0:
             raise InputError(f"{option} must be >= 0, got {value}")
     check_output_files([out], overwrite=overwrite, what="the picture")
     if scan is not None:
-        from rangemcl.dataset import load_sequence
-        from rangemcl.plots import save_range_image_png
+        from rangemcl.datasets.kitti import load_sequence
         from rangemcl.rangeimage import RangeImageGeometry
         from rangemcl.sensors import spec_from_dict
+        from rangemcl.viz.plots import save_range_image_png
 
         seq = load_sequence(scan)
         if not 0 <= frame < len(seq):
@@ -398,8 +398,8 @@ def render(
             save_range_image_png(out, image.ranges, top)
         typer.echo(f"wrote {out}: frame {frame} of {scan}, {int(np.count_nonzero(image.ranges))} returns")
         return
-    from simbed.render import render_png
-    from simbed.world import World
+    from simbed.sim.render import render_png
+    from simbed.sim.world import World
 
     world = World(scene, variant=variant, n_actors=actors, rng=np.random.default_rng(seed))
     if world.car is not None and world.town is not None:

@@ -8,7 +8,7 @@
 Every step writes into one folder. The folder's ``demo.yaml`` (written first) holds the demo's settings:
 run again with the same settings, the demo continues where it stopped (a step whose output is complete
 is reused); a folder that holds a finished demo, or a demo with other settings, is refused in one line
-naming ``--overwrite``, which replaces the folder whole (:mod:`rangemcl.outdir`).
+naming ``--overwrite``, which replaces the folder whole (:mod:`rangemcl.common.outdir`).
 """
 
 from __future__ import annotations
@@ -18,13 +18,13 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from rangemcl.atomic import atomic_write
+from rangemcl.common.atomic import atomic_write
 from rangemcl.config import write_config
-from rangemcl.dataset import load_sequence
+from rangemcl.datasets.kitti import load_sequence
 from rangemcl.errors import InputError
-from rangemcl.localize import RunOptions, localize_sequence
+from rangemcl.localization import LocalizerSettings
+from rangemcl.localization.pipeline import RunOptions, localize_sequence
 from rangemcl.mapping.pipeline import MapSettings, build_map
-from rangemcl.mcl import LocalizerSettings
 from simbed.record import record
 
 
@@ -46,7 +46,7 @@ class DemoSettings:
         is an :class:`InputError` naming it (and its ``simbed demo`` option)."""
         from rangemcl.raycast import resolve_device
         from rangemcl.sensors import load_spec
-        from simbed.world import resolve_scene
+        from simbed.sim.world import resolve_scene
 
         options = {"test_frames": "--test-frames", "particles": "--particles", "seed": "--seed"}
         for key, least in (
@@ -81,9 +81,9 @@ def check_demo_folder(out: Path, s: DemoSettings, overwrite: bool) -> bool:
     """Whether ``out`` holds an unfinished demo with the same settings (to continue); refuses, in one
     line, a finished demo or one with other settings unless ``overwrite``, and a folder that holds
     something else. Changes nothing."""
+    from rangemcl.common.outdir import check_output
+    from rangemcl.common.yamlio import parse_yaml, read_text
     from rangemcl.config import to_dict
-    from rangemcl.outdir import check_output
-    from rangemcl.yamlio import parse_yaml, read_text
 
     if overwrite or not (out / "demo.yaml").is_file():
         check_output(out, overwrite=overwrite, kind="demo results", markers=DEMO_MARKERS)
@@ -106,7 +106,7 @@ def run_demo(
 ) -> dict:
     """Run the four steps into ``out_dir`` (continuing an unfinished demo with the same settings, or
     replacing the folder with ``overwrite``); return the localization summary (with metrics)."""
-    from rangemcl.outdir import output_folder
+    from rangemcl.common.outdir import output_folder
 
     s = settings or DemoSettings()
     s.check(device)

@@ -1,4 +1,5 @@
-"""Recording drives to disk in the KITTI layout (``rangemcl.dataset``), with ground truth and odometry."""
+"""Recording drives to disk in the KITTI layout (``rangemcl.datasets.kitti``), with ground truth and
+odometry."""
 
 from __future__ import annotations
 
@@ -10,15 +11,15 @@ from pathlib import Path
 
 import numpy as np
 
-from rangemcl.dataset import SequenceWriter
+from rangemcl.datasets.kitti import SequenceWriter
 from rangemcl.errors import InputError
 from rangemcl.sensors import load_spec
 from simbed import __version__
-from simbed.actors import ACTOR_KINDS, actors_along_route, check_actor_paths, read_actor_paths
-from simbed.lanes import MAX_SPEED_MPS, check_lane, lane_from_waypoints, read_waypoints
-from simbed.routes import Route, is_waypoint_file, load_waypoints, make_route
-from simbed.sim import Drive
-from simbed.world import World, resolve_scene
+from simbed.scenes.lanes import MAX_SPEED_MPS, check_lane, lane_from_waypoints, read_waypoints
+from simbed.scenes.routes import Route, is_waypoint_file, load_waypoints, make_route
+from simbed.sim.actors import ACTOR_KINDS, actors_along_route, check_actor_paths, read_actor_paths
+from simbed.sim.drive import Drive
+from simbed.sim.world import World, resolve_scene
 
 
 @dataclass
@@ -67,15 +68,16 @@ def record(
 
     ``scene`` is a generated town or any MJCF scene (a car is added if it has none; the ground comes from
     its own geometry without a sidecar); ``route`` a named route of a town's road network or a waypoint
-    file (:mod:`simbed.lanes`; ``loop`` closes it and the car drives it lap after lap until ``frames``).
+    file (:mod:`simbed.scenes.lanes`; ``loop`` closes it and the car drives it lap after lap until
+    ``frames``).
     ``actors`` move on a town's roads, or beside a waypoint route in a scene without roads; with
-    ``actor_paths`` (a YAML file, :func:`simbed.actors.read_actor_paths`) they follow their own paths.
+    ``actor_paths`` (a YAML file, :func:`simbed.sim.actors.read_actor_paths`) they follow their own paths.
     Everything that can be checked (scene, sensor, route against the scene, output folder) is checked
     before the first file is written; frames are written one by one, so an interrupted recording leaves
     a readable prefix. The drive stops early when the route ends.
 
     ``fmt`` ``kitti`` writes a KITTI-layout folder; ``mcap``, ``rosbag2`` and ``rosbag1`` a bag
-    (:class:`rangemcl.ros.bag.BagWriter`: PointCloud2 with per-point time and ring, IMU, odometry, TF,
+    (:class:`rangemcl.datasets.rosbag.BagWriter`: PointCloud2 with per-point time and ring, IMU, odometry, TF,
     the true pose and the actors' boxes), which is complete only once closed. ``viz`` streams the scene,
     the car, its sweeps and the actors to the rerun viewer, ``viz_out`` saves them as an ``.rrd``.
     """
@@ -92,7 +94,7 @@ def record(
     if fmt not in ("kitti", *BAG_FORMATS):
         raise InputError(f"format {fmt!r}: expected kitti, {', '.join(BAG_FORMATS)}")
     if fmt != "kitti":
-        from rangemcl.ros.bag import require_rosbags
+        from rangemcl.datasets.rosbag import require_rosbags
 
         require_rosbags(f"--format {fmt}")
         if (fmt == "rosbag1") != (out.suffix == ".bag"):
@@ -102,7 +104,7 @@ def record(
                 else f"{out}: a {fmt} bag is a folder; give a name without .bag"
             )
     check_writable(out)
-    from rangemcl.viz import DriveViewer, check_rrd_path, rerun_module
+    from rangemcl.viz.rerun import DriveViewer, check_rrd_path, rerun_module
 
     if viz or viz_out is not None:  # the extra and the file's folder, before anything is written
         rerun_module()
@@ -164,7 +166,7 @@ def record(
     if fmt == "kitti":
         writer = SequenceWriter(out, meta=meta, overwrite=overwrite)
     else:
-        from rangemcl.ros.bag import BagWriter
+        from rangemcl.datasets.rosbag import BagWriter
 
         writer = BagWriter(out, fmt, meta=meta, T_base_sensor=spec.T_base_sensor, overwrite=overwrite)
     with writer, _progress(progress, frames) as bar, viewer:
@@ -222,7 +224,8 @@ def _actor_boxes(world: World) -> list[dict]:
 
 def scene_route(world: World, route: str, *, loop: bool = False, min_length_m: float = 0.0) -> Route:
     """The route to drive in ``world``: a named route of its road network, or a waypoint file checked
-    against the scene (:func:`simbed.lanes.check_lane`: ground, steps, the car's box) before anything is
+    against the scene (:func:`simbed.scenes.lanes.check_lane`: ground, steps, the car's box) before
+    anything is
     written; a loop is repeated lap after lap up to ``min_length_m``."""
     town = world.town
     if not is_waypoint_file(route):

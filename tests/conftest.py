@@ -46,8 +46,8 @@ def _write_map_v1(m, map_dir) -> None:
     import numpy as np
     import yaml
 
-    from rangemcl.atomic import savez_stable
-    from rangemcl.mapping.meshmap import GROUND_RGB, NON_GROUND_RGB, _plain
+    from rangemcl.common.atomic import savez_stable
+    from rangemcl.maps.meshmap import GROUND_RGB, NON_GROUND_RGB, _plain
 
     d = Path(map_dir)
     d.mkdir(parents=True, exist_ok=True)

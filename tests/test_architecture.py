@@ -19,21 +19,22 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # rangemcl's layers, lowest first: a module's layer is that of its longest listed prefix
 LAYERS = [
-    # the foundation: errors, files, configs, pools, pose math, synthetic meshes
-    ["errors", "atomic", "yamlio", "config", "pool", "heap", "outdir", "checkpoint", "cliutil", "se2",
-     "transforms", "meshgen"],
-    # the sensing core: sensor specs, range images, the ray caster, particles, scan files
-    ["sensors", "rangeimage", "raycast", "particles", "scanio"],
+    # the foundation: errors, configs, pose math, synthetic meshes, files, pools, checkpoints
+    ["errors", "config", "se2", "meshgen", "common"],
+    # the sensing core: sensor specs, range images, the ray caster
+    ["sensors", "rangeimage", "raycast"],
     # recordings: the KITTI folder, bags, scan folders, one source for all, LiDAR odometry
-    ["dataset", "ros", "scanfolder", "sources", "convert", "lidar_odometry"],
-    # maps: the store the localizer reads and the builder
+    ["datasets"],
+    # the map the localizer reads
+    ["maps"],
+    # the map builder
     ["mapping"],
     # the localizer
-    ["localization", "mcl"],
+    ["localization"],
     # evaluation and pictures
-    ["evaluate", "plots", "viz"],
-    # the run pipeline
-    ["localize"],
+    ["evaluation", "viz"],
+    # a localization run over a recording
+    ["localization.pipeline"],
     # the command line
     ["cli"],
 ]  # fmt: skip
@@ -79,9 +80,11 @@ def _layer(module: str) -> int | None:
     parts = module.split(".")
     if parts[0] != "rangemcl" or len(parts) == 1:
         return None
-    for k, layer in enumerate(LAYERS):
-        if parts[1] in layer:
-            return k
+    rest = parts[1:]
+    for n in range(len(rest), 0, -1):  # the longest listed prefix
+        for k, layer in enumerate(LAYERS):
+            if ".".join(rest[:n]) in layer:
+                return k
     raise AssertionError(f"{module}: in no layer of LAYERS (add it where it belongs)")
 
 

@@ -948,8 +948,8 @@ def test_the_good_inputs_are_good(base, tmp_path):
     """The base folder's inputs are accepted, so that each case fails for its own bad input: the sequence
     and the map pass every check of ``localize`` before its filter starts, the map is built from the
     sequence, the results folder evaluates, the sensor spec prints, the scene drives its route."""
-    from rangemcl.localize import LocalizationPipeline, RunOptions
-    from rangemcl.mapping.meshmap import MeshMap
+    from rangemcl.localization.pipeline import LocalizationPipeline, RunOptions
+    from rangemcl.maps.meshmap import MeshMap
 
     assert MeshMap.load(base / "map").n_triangles == 24
     d = _case_folder(base, tmp_path, {})
@@ -985,7 +985,7 @@ def test_place_prior_replaces_a_damaged_prior_with_the_same_bytes(base, tmp_path
 
 def test_a_damaged_drive_file_is_one_line(base, tmp_path):
     """The mapping drive's file is checked against map.yaml's sha256 as the ground grid is."""
-    from rangemcl.mapping.meshmap import MeshMap
+    from rangemcl.maps.meshmap import MeshMap
 
     m = MeshMap.load(base / "map")
     m.drive_xy = np.array([[-20.0, -10.0], [0.0, -10.0], [20.0, -10.0]])

@@ -14,9 +14,9 @@ import pytest
 
 pytest.importorskip("rosbags")
 
-from rangemcl.localize import RunOptions, localize_sequence
-from rangemcl.mcl import LocalizerSettings
-from rangemcl.sources import open_source
+from rangemcl.datasets.sources import open_source
+from rangemcl.localization import LocalizerSettings
+from rangemcl.localization.pipeline import RunOptions, localize_sequence
 from simbed.record import record
 
 FRAMES = 20
@@ -93,7 +93,7 @@ def _write_with_mcap_ros2(folder_path, out, *, odom_imu: bool = False) -> None:
     from mcap_ros2.writer import Writer
     from rosbags.typesys import Stores, get_typestore
 
-    from rangemcl.ros.bag import stamp_ns
+    from rangemcl.datasets.rosbag import stamp_ns
     from rangemcl.se2 import quat_from_matrix
 
     ts = get_typestore(Stores.ROS2_HUMBLE)
@@ -193,7 +193,7 @@ def _write_with_mcap_ros2(folder_path, out, *, odom_imu: bool = False) -> None:
 
 def test_an_mcap_from_another_writer_reads_as_the_folder(drives, tmp_path):
     pytest.importorskip("mcap_ros2")
-    from rangemcl.ros.bag import BagOptions
+    from rangemcl.datasets.rosbag import BagOptions
 
     path = tmp_path / "other.mcap"
     _write_with_mcap_ros2(drives["kitti"], path)
@@ -346,8 +346,8 @@ def _ouster_like_bag(path, frames=4):
 
 
 def test_start_stamped_scans_and_the_mount(tmp_path):
+    from rangemcl.datasets.rosbag import BagOptions
     from rangemcl.errors import InputError
-    from rangemcl.ros.bag import BagOptions
 
     path = tmp_path / "ouster"
     _ouster_like_bag(path)
@@ -373,7 +373,7 @@ def test_start_stamped_scans_and_the_mount(tmp_path):
 def test_convert_round_trip_and_a_folder_without_metadata(drives, tmp_path):
     import shutil
 
-    from rangemcl.convert import convert
+    from rangemcl.datasets.convert import convert
 
     folder = open_source(drives["kitti"])
     assert convert(drives["kitti"], tmp_path / "a.bag", "rosbag1") == FRAMES
@@ -447,8 +447,8 @@ def test_a_map_built_from_the_bag_is_the_folders(drives, tmp_path):
     """build-map reads the bag through the same loader: the mesh is the folder's (the poses differ by the
     folder's text rounding, 1e-10 m: vertices agree within 0.1 mm, a few of 9,000 faces flip in the
     ground simplification)."""
-    from rangemcl.mapping.meshmap import MeshMap
     from rangemcl.mapping.pipeline import MapSettings, build_map
+    from rangemcl.maps.meshmap import MeshMap
 
     s = MapSettings()
     s.poisson.depth = 7

@@ -11,8 +11,8 @@ import sys
 
 import pytest
 
-from rangemcl.localize import RunOptions, localize_sequence
-from rangemcl.mcl import LocalizerSettings
+from rangemcl.localization import LocalizerSettings
+from rangemcl.localization.pipeline import RunOptions, localize_sequence
 from simbed.record import record
 
 

@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 
 from rangemcl.config import load_config
-from rangemcl.dataset import SequenceWriter, load_sequence
+from rangemcl.datasets.kitti import SequenceWriter, load_sequence
 from rangemcl.errors import InputError
-from rangemcl.mapping.meshmap import MeshMap, import_mesh
 from rangemcl.mapping.pipeline import MapSettings, build_map
 from rangemcl.mapping.quality import map_quality
-from simbed.geometry import write_ply
+from rangemcl.maps.meshmap import MeshMap, import_mesh
 from simbed.record import record
-from simbed.world import World
+from simbed.sim.geometry import write_ply
+from simbed.sim.world import World
 
 
 @pytest.fixture(scope="module")
@@ -203,7 +203,7 @@ def test_sigterm_keeps_the_work_for_resume_and_stops_the_workers(drive, tmp_path
         _same_file(tmp_path / "m" / name, tmp_path / "fresh" / name)
     # the place prior was the build's last step: the localizer and `rangemcl place-prior` find it stored
     assert "place prior built" in fresh.stdout
-    from rangemcl.mcl import build_localizer
+    from rangemcl.localization import build_localizer
 
     loc = build_localizer(MeshMap.load(tmp_path / "fresh"), threads=2)
     loc.place_prior()
@@ -376,7 +376,7 @@ def test_ray_tasks_on_another_node_read_the_chunks_through_the_driver(
     monkeypatch.setattr(raybuild, "run_tiles", functools.partial(raybuild.run_tiles, via_reader=True))
     out = tmp_path / "m"
     report = build_map(seq, out, MapSettings(), backend="ray")  # all cores, as `uninterrupted`
-    from rangemcl.mcl import map_place_prior
+    from rangemcl.localization import map_place_prior
 
     map_place_prior(out, map_memory_mb=500.0)  # the CLI's last step, as for `uninterrupted`
     _same_map(out, uninterrupted)

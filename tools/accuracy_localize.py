@@ -8,7 +8,7 @@ and the kidnapped car (teleported mid-run), with the paper's metrics.
 
 * global (default): ``--starts`` runs, each from a start frame evenly spread along the drive, ``--frames``
   frames long, with no prior (``--particles``, default 10,000), seed = run index. Success, location RMSE
-  and yaw RMSE per run (``rangemcl.evaluate``), then over the runs: successes, and the RMSE over all
+  and yaw RMSE per run (``rangemcl.evaluation.metrics``), then over the runs: successes, and the RMSE over all
   frames of the successful runs (as the paper reports one figure per sensor).
 * ``--kidnap``: each run starts tracking at its start frame; halfway, the scans jump to another part of
   the drive (half the drive ahead) while the odometry carries on as if nothing happened. A run
@@ -43,9 +43,9 @@ def main() -> None:
     args = ap.parse_args()
 
     from rangemcl.config import load_config
-    from rangemcl.dataset import load_sequence, splice_kidnapped
-    from rangemcl.localize import RunOptions, localize_sequence
-    from rangemcl.mcl import LocalizerSettings
+    from rangemcl.datasets.kitti import load_sequence, splice_kidnapped
+    from rangemcl.localization import LocalizerSettings
+    from rangemcl.localization.pipeline import RunOptions, localize_sequence
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

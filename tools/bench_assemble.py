@@ -50,7 +50,7 @@ assemble_map(parts, work / "streamed", tile_size_m=float(sys.argv[2]), work_dir=
 """
 
 IN_MEMORY = """
-from rangemcl.mapping.meshmap import MeshMap
+from rangemcl.maps.meshmap import MeshMap
 vs, fs, gs, offset = [], [], [], 0
 for p in parts:
     z = np.load(p)
@@ -80,7 +80,7 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path("/tmp/rangemcl-bench-assemble"))
     ap.add_argument("--repeat", type=int, default=1, help="runs of each (medians reported)")
     args = ap.parse_args()
-    from rangemcl.mapping.meshmap import MeshMap
+    from rangemcl.maps.meshmap import MeshMap
 
     m = MeshMap.load(args.map_dir)
     shutil.rmtree(args.work, ignore_errors=True)

@@ -33,8 +33,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_map_memory import run_once
 
-from rangemcl.mapping.meshmap import GroundGrid, read_ground_and_drive, read_map_yaml, write_map_files
-from rangemcl.mapping.store import TileStore, write_index, write_tile
+from rangemcl.maps.meshmap import GroundGrid, read_ground_and_drive, read_map_yaml, write_map_files
+from rangemcl.maps.store import TileStore, write_index, write_tile
 
 
 def _faces_in(v, f, g, ij, origin, size):

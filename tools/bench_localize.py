@@ -77,11 +77,11 @@ def main() -> None:
 
     import open3d as o3d
 
-    from rangemcl.dataset import load_sequence
-    from rangemcl.localize import frame_period
-    from rangemcl.mapping.meshmap import MeshMap
-    from rangemcl.mcl import LocalizerSettings, build_localizer, prepare_rays, se2_between
-    from rangemcl.se2 import xyyaw_of
+    from rangemcl.datasets.kitti import load_sequence
+    from rangemcl.localization import LocalizerSettings, build_localizer, prepare_rays
+    from rangemcl.localization.pipeline import frame_period
+    from rangemcl.maps.meshmap import MeshMap
+    from rangemcl.se2 import se2_between, xyyaw_of
 
     seq = load_sequence(args.seq)
     mesh_map = MeshMap.load(args.map)

@@ -24,7 +24,7 @@ from pathlib import Path
 BUILD = """
 import json, sys, time
 from rangemcl.config import load_config
-from rangemcl.dataset import load_sequence, SequenceWriter
+from rangemcl.datasets.kitti import load_sequence, SequenceWriter
 from rangemcl.mapping.pipeline import MapSettings, build_map
 seq_dir, out, k, depth = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
 settings = MapSettings()

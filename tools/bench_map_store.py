@@ -32,8 +32,8 @@ from pathlib import Path
 STEP = r"""
 import json, resource, sys, time
 from pathlib import Path
-from rangemcl.mapping.meshmap import MeshMap
-from rangemcl.mapping.store import TileStore
+from rangemcl.maps.meshmap import MeshMap
+from rangemcl.maps.store import TileStore
 kind, d = sys.argv[1], Path(sys.argv[2])
 t = time.perf_counter()  # after the imports: the map's own time
 out = {}

@@ -4,7 +4,7 @@
 A drive is set up exactly as ``simbed record`` sets it up (``World(scene, n_actors=…)``, the ``mapping``
 route, ``Drive(world, route, load_spec(sensor), rng)``) and ``drive.next_frame()`` is timed frame by
 frame: physics, controller, odometry and the LiDAR are all included; writing files is not (the cost of
-writing one frame with ``rangemcl.dataset.SequenceWriter`` is measured on its own). Timing wrappers on
+writing one frame with ``rangemcl.datasets.kitti.SequenceWriter`` is measured on its own). Timing wrappers on
 ``RayCaster.cast``, ``mujoco.mj_step`` and the drive's other steps split the frame time by where it goes;
 no library code is changed.
 
@@ -37,13 +37,13 @@ import numpy as np
 import open3d as o3d
 import warp as wp
 
-from rangemcl.dataset import SequenceWriter
+from rangemcl.datasets.kitti import SequenceWriter
 from rangemcl.raycast import default_threads
 from rangemcl.sensors import load_spec
-from simbed.geometry import body_pose, split_static_dynamic
-from simbed.routes import make_route
-from simbed.sim import Drive
-from simbed.world import World
+from simbed.scenes.routes import make_route
+from simbed.sim.drive import Drive
+from simbed.sim.geometry import body_pose, split_static_dynamic
+from simbed.sim.world import World
 
 # MuJoCo geom groups: 0 static scene, 1 and 2 the ego car, 3 actors. mj_multiRay sees groups 0 and 3.
 GEOMGROUP = np.array([1, 0, 0, 1, 0, 0], np.uint8)
@@ -131,7 +131,7 @@ def instrument(drive: Drive, clock: Clock) -> Callable[[], None]:
     for obj, name, key in targets:
         setattr(obj, name, clock.wrap(key, getattr(obj, name)))  # instance attribute shadows the method
     original_step = mujoco.mj_step
-    mujoco.mj_step = clock.wrap("mj_step", original_step)  # simbed.world calls mujoco.mj_step
+    mujoco.mj_step = clock.wrap("mj_step", original_step)  # simbed.sim.world calls mujoco.mj_step
 
     def undo() -> None:
         mujoco.mj_step = original_step

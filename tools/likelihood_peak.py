@@ -42,11 +42,11 @@ def run() -> None:
     if args.every < 1:
         raise SystemExit("likelihood_peak: --every must be >= 1")
 
-    from rangemcl.dataset import load_sequence
+    from rangemcl.datasets.kitti import load_sequence
     from rangemcl.errors import InputError
-    from rangemcl.localize import odometry_xyyaw, resolve_sensor_height
-    from rangemcl.mapping.view import open_map
-    from rangemcl.mcl import LocalizerSettings, build_localizer
+    from rangemcl.localization import LocalizerSettings, build_localizer
+    from rangemcl.localization.pipeline import odometry_xyyaw, resolve_sensor_height
+    from rangemcl.maps.view import open_map
     from rangemcl.se2 import se2_between, xyyaw_of
 
     seq = load_sequence(args.seq)

@@ -4,9 +4,10 @@
     python tools/odometry_drift.py SEQ [SEQ ...] [--frames 300] [--out drift.json]
 
 For each KITTI-layout sequence folder (with ``poses.txt``; ``odometry.txt`` optional) kiss-icp runs over
-the first ``--frames`` frames (:class:`rangemcl.lidar_odometry.KissIcpOdometry`, set up from the
+the first ``--frames`` frames (:class:`rangemcl.datasets.lidar_odometry.KissIcpOdometry`, set up from the
 sequence's sensor spec), and both odometries are measured against the truth
-(:func:`rangemcl.lidar_odometry.odometry_drift`): translation error % and rotation error deg/100 m, means
+(:func:`rangemcl.datasets.lidar_odometry.odometry_drift`): translation error % and rotation error deg/100
+m, means
 over all 20/50/100 m segments, and the final drift as % of the distance driven. Two markdown tables are
 printed: planar (x, y, yaw: what the localizer uses) and 3D (the KITTI benchmark's metric, height and
 tilt errors included), with kiss-icp's median seconds per frame (registration only, not reading).
@@ -23,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from rangemcl.dataset import load_sequence
+from rangemcl.datasets.kitti import load_sequence
+from rangemcl.datasets.lidar_odometry import KissIcpOdometry, odometry_drift
 from rangemcl.errors import InputError
-from rangemcl.lidar_odometry import KissIcpOdometry, odometry_drift
 
 
 def run_kiss_icp(seq, frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:

@@ -5,13 +5,14 @@ localized with its odometry miscalibrated on purpose.
     python tools/odometry_sweep.py --seq out/test_run --map out/town_small_map --out out/odo_sweep
     python tools/odometry_sweep.py --seq SEQ --map MAP --out OUT --scales 0.95,1.05 --mode global
 
-For each setting the drive's ``odometry.txt`` is rewritten (:func:`rangemcl.dataset.perturb_odometry`:
+For each setting the drive's ``odometry.txt`` is rewritten (:func:`rangemcl.datasets.kitti.perturb_odometry`:
 every frame's step with its translation scaled, its yaw change plus a gyro bias x the frame's duration)
 into a copy of the sequence whose other files are hard links (or copies) of the original's, and
 ``rangemcl localize`` runs on it (tracking from the first true pose by default; ``--mode global`` for the
 time after global convergence). Reported per setting, over the frames after convergence: location RMSE,
 yaw RMSE, mean and largest along-track and cross-track error (signed, in the true pose's frame:
-:func:`rangemcl.evaluate.track_errors`). The table goes to ``OUT/odometry_sweep.json`` and is printed;
+:func:`rangemcl.evaluation.metrics.track_errors`). The table goes to ``OUT/odometry_sweep.json`` and is
+printed;
 runs whose ``summary.json`` exists are reused.
 """
 
@@ -143,10 +144,10 @@ def main() -> None:
     args = ap.parse_args()
 
     from rangemcl.config import load_config
-    from rangemcl.dataset import load_sequence, perturb_odometry, write_poses_txt
-    from rangemcl.evaluate import pose_errors, track_errors
-    from rangemcl.localize import RunOptions, localize_sequence
-    from rangemcl.mcl import LocalizerSettings
+    from rangemcl.datasets.kitti import load_sequence, perturb_odometry, write_poses_txt
+    from rangemcl.evaluation.metrics import pose_errors, track_errors
+    from rangemcl.localization import LocalizerSettings
+    from rangemcl.localization.pipeline import RunOptions, localize_sequence
     from rangemcl.se2 import xyyaw_of
 
     seq = load_sequence(args.seq, require_poses=True)

@@ -60,17 +60,17 @@ def run() -> None:
     )
     args = ap.parse_args()
 
-    from rangemcl.dataset import load_sequence
+    from rangemcl.datasets.kitti import load_sequence
     from rangemcl.errors import InputError
+    from rangemcl.localization import LocalizerSettings, build_localizer
+    from rangemcl.localization.pipeline import odometry_xyyaw, resolve_sensor_height
     from rangemcl.localization.place_prior import (
         circular_distance_deg,
         elevations_deg,
         scan_profile,
         sequence_costs,
     )
-    from rangemcl.localize import odometry_xyyaw, resolve_sensor_height
-    from rangemcl.mapping.view import open_map
-    from rangemcl.mcl import LocalizerSettings, build_localizer
+    from rangemcl.maps.view import open_map
     from rangemcl.se2 import rotation_roll_pitch, se2_between, xyyaw_of
 
     seq = load_sequence(args.seq)

@@ -39,12 +39,12 @@ def main() -> None:
     a = ap.parse_args()
 
     from rangemcl.config import load_config
-    from rangemcl.dataset import load_sequence
+    from rangemcl.datasets.kitti import load_sequence
     from rangemcl.errors import InputError
-    from rangemcl.localize import frame_period, odometry_xyyaw, resolve_sensor_height
-    from rangemcl.mapping.meshmap import MeshMap
-    from rangemcl.mcl import LocalizerSettings, build_localizer, prepare_rays, se2_between
-    from rangemcl.se2 import xyyaw_of
+    from rangemcl.localization import LocalizerSettings, build_localizer, prepare_rays
+    from rangemcl.localization.pipeline import frame_period, odometry_xyyaw, resolve_sensor_height
+    from rangemcl.maps.meshmap import MeshMap
+    from rangemcl.se2 import se2_between, xyyaw_of
 
     seq = load_sequence(a.seq, require_poses=True)
     settings = load_config(LocalizerSettings, a.config)

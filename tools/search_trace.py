@@ -45,11 +45,11 @@ def run() -> None:
     args = ap.parse_args()
 
     from rangemcl.config import load_config
-    from rangemcl.dataset import load_sequence
+    from rangemcl.datasets.kitti import load_sequence
     from rangemcl.errors import InputError
-    from rangemcl.localize import frame_period, odometry_xyyaw, resolve_sensor_height
-    from rangemcl.mapping.view import open_map
-    from rangemcl.mcl import LocalizerSettings, build_localizer
+    from rangemcl.localization import LocalizerSettings, build_localizer
+    from rangemcl.localization.pipeline import frame_period, odometry_xyyaw, resolve_sensor_height
+    from rangemcl.maps.view import open_map
     from rangemcl.se2 import se2_between, wrap_angle, xyyaw_of
 
     seq = load_sequence(args.seq)

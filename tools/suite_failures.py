@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from rangemcl.dataset import read_poses_txt
+from rangemcl.datasets.kitti import read_poses_txt
 from rangemcl.errors import InputError
-from simbed.trials import DRIVE_FIELDS, drive_key
+from simbed.trials.suites import DRIVE_FIELDS, drive_key
 
 FAR_M = 60.0  # a wrong convergence this far off is another street, not a settling filter
 NEAR_M = 5.0  # the suites' success radius

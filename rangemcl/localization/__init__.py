@@ -10,9 +10,44 @@
 * ``refine`` and ``calibration``: scan-to-mesh refinement of a converged pose, and the odometry's online
   calibration;
 * ``filter``: the core (``MonteCarloLocalizer.step``) that composes them;
+* ``particles``: the odometry motion model and resampling;
 * ``settings`` and ``factory``: the YAML settings (every default) and the factories that build the filter
-  and its parts from them (``rangemcl.mcl`` re-exports both).
+  and its parts from them;
+* ``pipeline``: a run over a recording (``rangemcl localize``): load, filter every frame, write the
+  trajectory, metrics, summary and plots.
 
-They import numpy, scipy, Warp and rangemcl's numeric core (``se2``, ``raycast``, ``particles``); the
-command-line pipeline (``rangemcl.localize``) builds on them.
+They import numpy, scipy, Warp and rangemcl's foundation, sensing core and maps; only ``pipeline`` reads
+recordings and writes results. The package's own names (``from rangemcl.localization import
+LocalizerSettings, build_localizer``) are the localizer's public face; they are imported when first used.
 """
+
+_PUBLIC = {
+    "build_localizer": "factory",
+    "map_place_prior": "factory",
+    "prepare_rays": "factory",
+    "ray_selector": "factory",
+    "scan_refiner": "factory",
+    "MonteCarloLocalizer": "filter",
+    "StepInfo": "filter",
+    "DrivableArea": "spread",
+    "drivable_cells": "spread",
+    "LocalizerSettings": "settings",
+    "ParticleSettings": "settings",
+    "MotionSettings": "settings",
+    "ObservationSettings": "settings",
+    "ConvergenceSettings": "settings",
+    "RecoverySettings": "settings",
+    "RefineSettings": "settings",
+    "InitSettings": "settings",
+}
+__all__ = sorted(_PUBLIC)
+
+
+def __getattr__(name: str):
+    """The public names, from their modules, on first use (importing the package stays cheap)."""
+    module = _PUBLIC.get(name)
+    if module is None:
+        raise AttributeError(f"module 'rangemcl.localization' has no attribute {name!r}")
+    import importlib
+
+    return getattr(importlib.import_module(f"rangemcl.localization.{module}"), name)

@@ -13,6 +13,7 @@ import numpy as np
 from rangemcl.localization.calibration import OdometryCalibrator, ParticleCalibration
 from rangemcl.localization.filter import MonteCarloLocalizer
 from rangemcl.localization.lost import LostDetector, SignalWatch
+from rangemcl.localization.particles import MotionNoise
 from rangemcl.localization.place_prior import PlacePrior, PriorParams, load_or_build
 from rangemcl.localization.refine import ScanRefiner
 from rangemcl.localization.renderer import ParticleRenderer
@@ -25,8 +26,7 @@ from rangemcl.localization.settings import (
     RefineSettings,
 )
 from rangemcl.localization.spread import drivable_cells
-from rangemcl.mapping.meshmap import MeshMap
-from rangemcl.particles import MotionNoise
+from rangemcl.maps.meshmap import MeshMap
 from rangemcl.raycast import RayCaster
 
 # ---------------------------------------------------------------------------------------------- scan rays
@@ -292,7 +292,7 @@ def map_place_prior(
     pay for it). The map is held as the localizer holds it: within ``map_memory_mb`` (default: the
     settings', else the localizer's default), the prior then rendered tile by tile. Returns ``(prior, how)``
     with how in ``loaded | built | built (not saved: ...)``."""
-    from rangemcl.mapping.view import open_map
+    from rangemcl.maps.view import open_map
 
     s = settings or LocalizerSettings()
     s.check()

@@ -55,6 +55,14 @@ from rangemcl.localization.lost import (
     history_fit,
     second_opinion,
 )
+from rangemcl.localization.particles import (
+    MotionNoise,
+    effective_sample_size,
+    low_variance_resample,
+    normalize_log_weights,
+    pose_estimate,
+    sample_motion,
+)
 from rangemcl.localization.place_prior import (
     PlacePrior,
     PriorParams,
@@ -67,14 +75,6 @@ from rangemcl.localization.place_prior import (
 from rangemcl.localization.refine import ScanRefiner
 from rangemcl.localization.scan_prep import ScanRays
 from rangemcl.localization.spread import DrivableArea, uniform_particles
-from rangemcl.particles import (
-    MotionNoise,
-    effective_sample_size,
-    low_variance_resample,
-    normalize_log_weights,
-    pose_estimate,
-    sample_motion,
-)
 from rangemcl.se2 import odometry_increment, rotation_roll_pitch, se2_compose, se2_inverse, wrap_angle
 
 # the search's polish of its heaviest hypotheses (MonteCarloLocalizer._polish_hypotheses): a coarse grid
@@ -386,7 +386,7 @@ class MonteCarloLocalizer:
         return elevations_deg(self._scan_raw)
 
     def _count_in_budget(self, what: str, nbytes: int) -> None:
-        """A map held within a memory budget (``rangemcl.mapping.view.MapView``) counts what the filter
+        """A map held within a memory budget (``rangemcl.maps.view.MapView``) counts what the filter
         derives from it against that budget; a whole map has no budget."""
         if self.map.budgeted:
             self.map.reserve(what, nbytes)
@@ -461,7 +461,7 @@ class MonteCarloLocalizer:
 
     def _check_budget(self, search: bool) -> None:
         """Before the first frame, a map within a memory budget is checked against all the run needs
-        (:meth:`rangemcl.mapping.view.MapView.check_budget`), the place priors it may load later included:
+        (:meth:`rangemcl.maps.view.MapView.check_budget`), the place priors it may load later included:
         the band prior of a search (now, or after the lost detector re-spreads the particles; its second
         opinion reads it too) and the beam prior a scan with nothing in the high band asks for. A budget
         short of it is refused in one line now, not frames later."""
@@ -566,7 +566,7 @@ class MonteCarloLocalizer:
                 if self._prior_pending and levelled is not None:
                     self._draw_initial_prior(levelled)
                 self._stepped = True
-                if self.map.budgeted:  # a map within a memory budget (rangemcl.mapping.view)
+                if self.map.budgeted:  # a map within a memory budget (rangemcl.maps.view)
                     info.update(
                         self.map.update(self.particles[:, :2], self.map_radius_m, wait=not self.converged)
                     )
@@ -926,7 +926,7 @@ class MonteCarloLocalizer:
         scan has too little in the prior's height band, or too few far rays, to compare. ``rival``: a
         place scored with them (the last better place moved with the odometry, or None); ``inlier_gain``:
         what a better place must gain (:class:`rangemcl.localization.lost.LostDetector`). Over a map
-        within a budget (:meth:`rangemcl.mapping.view.MapView.consult`) the places whose tiles are not
+        within a budget (:meth:`rangemcl.maps.view.MapView.consult`) the places whose tiles are not
         held yet are asked for and left out of this opinion."""
         lost = self.lost
         sub = self._far_rays(rays)

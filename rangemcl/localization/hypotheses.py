@@ -33,7 +33,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from rangemcl.particles import low_variance_resample
+from rangemcl.localization.particles import low_variance_resample
 from rangemcl.se2 import circular_mean
 
 

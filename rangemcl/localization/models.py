@@ -182,7 +182,7 @@ FIELD_BYTES_PER_VOXEL = 48
 
 
 class TiledLikelihoodFieldModel(LikelihoodFieldModel):
-    """The likelihood field over a map held within a memory budget (:class:`rangemcl.mapping.view.
+    """The likelihood field over a map held within a memory budget (:class:`rangemcl.maps.view.
     MapView`): the surface voxels of each tile the view holds within the rays' reach of the particles
     (not the tiles loaded ahead), at the level it holds it (full or coarse),
     in one k-d tree a tile, made when the tile comes in (the voxels kept on disk per tile file, as
@@ -325,7 +325,7 @@ def _voxel_cache(key: str, compute) -> np.ndarray:
     import hashlib
     import os
 
-    from rangemcl.atomic import atomic_write
+    from rangemcl.common.atomic import atomic_write
 
     root = os.environ.get("RANGEMCL_CACHE_DIR") or (
         Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "rangemcl"
@@ -347,7 +347,7 @@ def _voxel_cache(key: str, compute) -> np.ndarray:
 
 
 def tile_surface_voxels(store, k: int, coarse: bool, voxel_m: float, seed: int = 0) -> np.ndarray:
-    """:func:`surface_voxels` of tile ``k`` of a :class:`~rangemcl.mapping.store.TileStore` (its coarse
+    """:func:`surface_voxels` of tile ``k`` of a :class:`~rangemcl.maps.store.TileStore` (its coarse
     level with ``coarse``), kept in the cache directory keyed by the tile file and its checksum."""
     e = store.entries[k].coarse if coarse else store.entries[k]
     key = f"{(Path(store.map_dir) / e.file).resolve()}|{e.sha256}|{voxel_m!r}|{seed}|tile-v1"

@@ -401,7 +401,7 @@ class PlacePrior:
         """Write the prior to ``path`` (atomically). The file holds the cells, the profiles and a meta
         record (version, key, parameters, a sha256 of the arrays): no timing, so the same map and
         parameters give the same bytes."""
-        from rangemcl.atomic import atomic_write, savez_stable
+        from rangemcl.common.atomic import atomic_write, savez_stable
 
         xy = self.xy.astype(np.float32)
         meta = {"version": PRIOR_VERSION, "key": key, "params": asdict(self.params)}
@@ -577,7 +577,7 @@ REPORT_FILE = "report.json"  # beside the prior: how long each stored prior took
 def record_build(path: Path, prior: PlacePrior) -> None:
     """Note in ``report.json`` beside the prior file ``path`` how long it took to render (the prior's own
     bytes hold no timing). A report that cannot be read or written is left as it is: it is informative."""
-    from rangemcl.atomic import atomic_write
+    from rangemcl.common.atomic import atomic_write
 
     report = Path(path).parent / REPORT_FILE
     try:

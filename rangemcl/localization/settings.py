@@ -494,7 +494,7 @@ class LocalizerSettings:
     else 1.73 (KITTI)."""
     map_memory_mb: float | None = None
     """Memory in MB that the localizer may hold of the map (its tiles near the particles,
-    `rangemcl.mapping.view`); `--map-memory` overrides it. `None`: the whole map when it takes under a
+    `rangemcl.maps.view`); `--map-memory` overrides it. `None`: the whole map when it takes under a
     quarter of the memory available, else that quarter."""
 
     def check(self, where: str = "settings") -> None:

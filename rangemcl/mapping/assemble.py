@@ -12,7 +12,7 @@ at a time:
    file of the tile that owns its ground-grid cell;
 3. the ground grid, one owner tile at a time (per-cell medians of the ground vertices, as
    :meth:`GroundGrid.from_vertices` computes them);
-4. the map's tile files (:mod:`rangemcl.mapping.store`), one map tile at a time from its spooled parts,
+4. the map's tile files (:mod:`rangemcl.maps.store`), one map tile at a time from its spooled parts,
    then ``tiles.json``, ``ground.npz``, ``drive.npz`` and ``map.yaml`` last.
 
 So the builder's peak memory follows the largest tile, not the map's area. What does grow with the area:
@@ -26,9 +26,10 @@ from pathlib import Path
 
 import numpy as np
 
+from rangemcl.common.pool import kill_point
 from rangemcl.errors import InputError
-from rangemcl.mapping.coarse import write_with_coarse
-from rangemcl.mapping.meshmap import (
+from rangemcl.maps.coarse import write_with_coarse
+from rangemcl.maps.meshmap import (
     GroundGrid,
     face_tile_ij,
     fill_cell_medians,
@@ -37,8 +38,7 @@ from rangemcl.mapping.meshmap import (
     tile_keys,
     write_map_files,
 )
-from rangemcl.mapping.store import write_index
-from rangemcl.pool import kill_point
+from rangemcl.maps.store import write_index
 
 
 def _load_tile(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

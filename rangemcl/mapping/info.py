@@ -3,7 +3,7 @@
 A map of format 2 is opened by its index alone (timed: what every localizer run pays before its first
 tile), then every tile file is read once, checked (size, checksum, counts) and counted, one tile at a time,
 so a city's map is described in the memory of one tile rather than of the whole mesh. A map of format 1 is
-loaded whole, as before (:func:`rangemcl.mapping.meshmap.map_summary`).
+loaded whole, as before (:func:`rangemcl.maps.meshmap.map_summary`).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from rangemcl.mapping.meshmap import (
+from rangemcl.maps.meshmap import (
     MAP_FILES,
     map_summary,
     open_checked_store,
@@ -28,7 +28,7 @@ _META_KEYS = ("frame", "sensor_height_m", "created_by", "source_sequence", "sour
 def map_info(map_dir, *, describe_prior=None) -> dict[str, Any]:
     """Plain figures about the map in ``map_dir`` (keys in print order); problems are InputErrors naming
     the file."""
-    from rangemcl.mapping.meshmap import MeshMap
+    from rangemcl.maps.meshmap import MeshMap
 
     map_dir = Path(map_dir)
     version, doc = read_map_yaml(map_dir)

@@ -21,22 +21,22 @@ from pathlib import Path
 
 import numpy as np
 
-from rangemcl.atomic import atomic_write
+from rangemcl.common.atomic import atomic_write
+from rangemcl.common.pool import kill_point, process_pool
 from rangemcl.config import to_dict, write_config
-from rangemcl.dataset import Sequence
+from rangemcl.datasets.kitti import Sequence
+from rangemcl.datasets.sources import open_source
 from rangemcl.errors import InputError
 from rangemcl.mapping.assemble import assemble_map
-from rangemcl.mapping.coarse import COARSE_RATIO
 from rangemcl.mapping.ground import label_ground
-from rangemcl.mapping.meshmap import thin_path
 from rangemcl.mapping.normals import scan_normals
 from rangemcl.mapping.poisson import poisson_mesh, transfer_labels
 from rangemcl.mapping.simplify import simplify_ground
-from rangemcl.pool import kill_point, process_pool
+from rangemcl.maps.coarse import COARSE_RATIO
+from rangemcl.maps.meshmap import thin_path
 from rangemcl.rangeimage import RangeImageGeometry
 from rangemcl.se2 import interpolate_poses
 from rangemcl.sensors import spec_from_dict
-from rangemcl.sources import open_source
 
 # ---------------------------------------------------------------------------------------------- settings
 

@@ -22,8 +22,8 @@ import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+from rangemcl.common.pool import descendants_die_with_me
 from rangemcl.errors import InputError
-from rangemcl.pool import descendants_die_with_me
 
 _OWNER_VAR = "RANGEMCL_RAY_OWNER"  # marks the processes of a local Ray instance this build started
 

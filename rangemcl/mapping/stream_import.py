@@ -1,6 +1,6 @@
 """``rangemcl import-mesh`` for meshes larger than memory: a binary PLY read in place.
 
-:func:`rangemcl.mapping.meshmap.import_mesh` reads the whole mesh (trimesh), then labels, tiles and writes
+:func:`rangemcl.maps.meshmap.import_mesh` reads the whole mesh (trimesh), then labels, tiles and writes
 it: its peak memory grows with the mesh (3.7 GB for 8.6 M triangles). This module writes the same map
 folder, file for file, from a binary PLY of triangles without holding it: the file's vertex and face
 blocks are memory-mapped (fixed-size records), every pass reads them a block at a time, and what the
@@ -151,8 +151,8 @@ def import_mesh_streaming(
     ``import_mesh(path).save(out_dir)``. Returns the counts of ``map.yaml``, or None when the file is not a
     binary triangle PLY this reads (the caller falls back to the in-memory import). Scratch files go to
     ``work_dir`` (removed at the end)."""
-    from rangemcl.mapping.coarse import write_with_coarse
-    from rangemcl.mapping.meshmap import (
+    from rangemcl.maps.coarse import write_with_coarse
+    from rangemcl.maps.meshmap import (
         GROUND_RGB,
         GROUND_RULE_LABEL,
         NON_GROUND_RGB,
@@ -163,7 +163,7 @@ def import_mesh_streaming(
         tile_keys,
         write_map_files,
     )
-    from rangemcl.mapping.store import write_index
+    from rangemcl.maps.store import write_index
 
     path, out_dir, work = Path(path), Path(out_dir), Path(work_dir)
     layout = ply_layout(path)

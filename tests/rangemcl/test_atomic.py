@@ -8,7 +8,7 @@ import stat
 
 import pytest
 
-from rangemcl.atomic import atomic_write
+from rangemcl.common.atomic import atomic_write
 from rangemcl.errors import InputError
 
 
@@ -47,7 +47,7 @@ def test_npz_bytes_depend_only_on_the_arrays(monkeypatch):
 
     import numpy as np
 
-    from rangemcl.atomic import savez_stable
+    from rangemcl.common.atomic import savez_stable
 
     arrays = {"a": np.arange(10.0), "b": np.array("meta"), "c": np.zeros((3, 2), np.int32)}
 

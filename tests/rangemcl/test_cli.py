@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import yaml
 
+from rangemcl.datasets.scanio import read_scan_bin, write_scan_bin
 from rangemcl.errors import InputError
-from rangemcl.scanio import read_scan_bin, write_scan_bin
 from rangemcl.sensors import load_spec, preset_names, spec_from_dict
 
 

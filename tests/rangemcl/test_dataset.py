@@ -1,4 +1,5 @@
-"""Sequences in the KITTI layout (``rangemcl.dataset``): round trips, KITTI files, interrupted recordings,
+"""Sequences in the KITTI layout (``rangemcl.datasets.kitti``): round trips, KITTI files, interrupted
+recordings,
 validation.
 
 Expected values come from this file: rotations are built from random unit quaternions with the textbook
@@ -23,7 +24,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rangemcl.dataset import (
+from rangemcl.datasets.kitti import (
     Sequence,
     SequenceWriter,
     load_sequence,
@@ -31,8 +32,8 @@ from rangemcl.dataset import (
     read_poses_txt,
     write_poses_txt,
 )
+from rangemcl.datasets.scanio import write_scan_bin
 from rangemcl.errors import InputError
-from rangemcl.scanio import write_scan_bin
 
 # --- independent helpers ---------------------------------------------------------------------------------
 
@@ -334,7 +335,7 @@ def test_killed_recording_leaves_a_readable_prefix(tmp_path: Path) -> None:
     script = textwrap.dedent(
         f"""
         import numpy as np
-        from rangemcl.dataset import SequenceWriter
+        from rangemcl.datasets.kitti import SequenceWriter
         rng = np.random.default_rng(0)
         with SequenceWriter({str(root)!r}, meta={{"scene": "x"}}) as w:
             for k in range(100000):

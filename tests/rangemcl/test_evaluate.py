@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from rangemcl.errors import InputError
-from rangemcl.evaluate import convergence_events, localization_metrics
+from rangemcl.evaluation.metrics import convergence_events, localization_metrics
 
 
 def trajectory():
@@ -52,7 +52,7 @@ def test_no_events_no_counts():
 
 
 def test_track_errors_split_the_offset_along_and_across_the_true_heading():
-    from rangemcl.evaluate import track_errors
+    from rangemcl.evaluation.metrics import track_errors
 
     truth = np.array([[0.0, 0.0, 0.0], [5.0, 5.0, np.pi / 2], [1.0, 2.0, np.pi]])
     est = truth + np.array([[0.3, 0.1, 0.0], [0.3, 0.1, 0.0], [0.3, 0.1, 0.0]])
@@ -67,7 +67,7 @@ def test_track_errors_split_the_offset_along_and_across_the_true_heading():
 
 
 def test_perturbed_odometry_scales_distance_and_adds_the_gyro_bias():
-    from rangemcl.dataset import perturb_odometry
+    from rangemcl.datasets.kitti import perturb_odometry
     from rangemcl.se2 import pose_matrix, xyyaw_of, yaw_matrix
 
     # a drive along a circle of 20 m radius at 5 m/s, 10 Hz, on a slope (z rises, pitch kept)
@@ -95,9 +95,9 @@ def test_perturbed_odometry_scales_distance_and_adds_the_gyro_bias():
 def test_an_interrupted_run_is_evaluated_from_its_frames_csv_and_said_partial(tmp_path):
     """A localization killed outright leaves frames.csv only (its last line may be cut): evaluate reads
     it, against poses.txt in the lidar frame of the calib.txt beside it, and marks the metrics partial."""
-    from rangemcl.dataset import write_poses_txt
-    from rangemcl.evaluate import evaluate_results
-    from rangemcl.localize import FRAME_COLUMNS
+    from rangemcl.datasets.kitti import write_poses_txt
+    from rangemcl.evaluation.metrics import evaluate_results
+    from rangemcl.localization.pipeline import FRAME_COLUMNS
 
     n, first = 40, 10
     truth = np.zeros((n + first, 4, 4))

@@ -1,4 +1,5 @@
-"""LiDAR odometry (rangemcl.lidar_odometry): the drift metrics against analytic cases, and kiss-icp on a
+"""LiDAR odometry (rangemcl.datasets.lidar_odometry): the drift metrics against analytic cases, and
+kiss-icp on a
 simulated drive against its ground truth."""
 
 from __future__ import annotations
@@ -11,13 +12,13 @@ import time
 import numpy as np
 import pytest
 
-from rangemcl.errors import InputError
-from rangemcl.lidar_odometry import (
+from rangemcl.datasets.lidar_odometry import (
     KissIcpOdometry,
     kiss_icp_odometry,
     mount_of,
     odometry_drift,
 )
+from rangemcl.errors import InputError
 from rangemcl.se2 import pose_matrix, rotation_roll_pitch
 
 # ---------------------------------------------------------------------------------------------- drift metrics
@@ -186,7 +187,7 @@ def kiss():
 
 @pytest.fixture(scope="module")
 def drive(tmp_path_factory):
-    from rangemcl.dataset import load_sequence
+    from rangemcl.datasets.kitti import load_sequence
     from simbed.record import record
 
     out = tmp_path_factory.mktemp("lidar_odometry") / "vlp16"

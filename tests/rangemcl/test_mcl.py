@@ -12,26 +12,24 @@ import numpy as np
 import pytest
 
 from rangemcl import meshgen
-from rangemcl.checkpoint import restore_state, save_state
+from rangemcl.common.checkpoint import restore_state, save_state
 from rangemcl.config import load_config
-from rangemcl.dataset import SequenceWriter
+from rangemcl.datasets.kitti import SequenceWriter
 from rangemcl.errors import InputError
-from rangemcl.evaluate import evaluate_results, localization_metrics
-from rangemcl.localize import RunOptions, localize_sequence
-from rangemcl.mapping.meshmap import MeshMap
-from rangemcl.mcl import (
+from rangemcl.evaluation.metrics import evaluate_results, localization_metrics
+from rangemcl.localization import (
     LocalizerSettings,
     MonteCarloLocalizer,
     ObservationSettings,
     build_localizer,
     drivable_cells,
     prepare_rays,
-    rotation_roll_pitch,
-    se2_between,
 )
+from rangemcl.localization.pipeline import RunOptions, localize_sequence
+from rangemcl.maps.meshmap import MeshMap
 from rangemcl.rangeimage import RangeImageGeometry
 from rangemcl.raycast import RayCaster
-from rangemcl.se2 import se2_compose
+from rangemcl.se2 import rotation_roll_pitch, se2_between, se2_compose
 from rangemcl.sensors import load_spec
 
 HEIGHT = 1.73

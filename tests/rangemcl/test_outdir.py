@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from rangemcl import meshgen
+from rangemcl.common.outdir import RESULT_MARKERS, check_output, has_frames, output_folder
 from rangemcl.errors import InputError
-from rangemcl.outdir import RESULT_MARKERS, check_output, has_frames, output_folder
 
 
 def _results(folder, tag="old"):
@@ -97,7 +97,7 @@ def test_results_computed_before_a_failure_are_kept(tmp_path):
 
 
 def test_cli_import_mesh_follows_the_policy(tmp_path):
-    from simbed.geometry import write_ply
+    from simbed.sim.geometry import write_ply
 
     v, f = meshgen.merge([meshgen.grid_patch((0, 0, 0), (50.0, 0, 0), (0, 50.0, 0), 4, 4)])
     mesh = tmp_path / "ground.ply"

@@ -8,8 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from rangemcl.localization.factory import motion_noise
-from rangemcl.localization.settings import MotionSettings
-from rangemcl.particles import (
+from rangemcl.localization.particles import (
     MotionNoise,
     circular_mean,
     effective_sample_size,
@@ -21,6 +20,7 @@ from rangemcl.particles import (
     sample_motion,
     wrap_angle,
 )
+from rangemcl.localization.settings import MotionSettings
 
 angles = st.floats(-1e3, 1e3, allow_nan=False)
 

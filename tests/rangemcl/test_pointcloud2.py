@@ -10,8 +10,8 @@ import re
 import numpy as np
 import pytest
 
+from rangemcl.datasets import pointcloud2 as pc2
 from rangemcl.errors import InputError
-from rangemcl.ros import pointcloud2 as pc2
 
 CODES = {"i1": 1, "u1": 2, "i2": 3, "u2": 4, "i4": 5, "u4": 6, "f4": 7, "f8": 8}
 

@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from rangemcl.pool import process_pool
+from rangemcl.common.pool import process_pool
 
 
 def _square(x: int) -> int:
@@ -52,7 +52,7 @@ def _interrupt_once(context):
 _STOP_DURING_SPAWN = r"""
 import os, signal, sys, threading
 from concurrent.futures import ProcessPoolExecutor
-from rangemcl.pool import process_pool
+from rangemcl.common.pool import process_pool
 
 spawned = []
 
@@ -102,7 +102,7 @@ def test_a_stop_while_workers_spawn_waits_for_them(tmp_path):
 
 _ORPHANS = r"""
 import os, signal, subprocess, sys, time
-from rangemcl.pool import descendants_die_with_me
+from rangemcl.common.pool import descendants_die_with_me
 
 mark, pids = sys.argv[1], sys.argv[2]
 with descendants_die_with_me(interval_s=60.0) as dog:  # no look after the marker's: only it finds them
@@ -165,7 +165,7 @@ def _alive(pid: int) -> bool:
 
 _BLOCK = r"""
 import signal, subprocess, sys, time
-from rangemcl.pool import descendants_die_with_me
+from rangemcl.common.pool import descendants_die_with_me
 
 how, pids = sys.argv[1], sys.argv[2]
 with descendants_die_with_me(interval_s=0.05):

@@ -931,8 +931,8 @@ def test_a_map_cast_tile_by_tile_hits_exactly_what_the_whole_mesh_hits(tmp_path)
     """The tiles of a map folder (format 2), each its own mesh in the caster, give the ranges of
     the whole mesh bit for bit for rays that cross tile borders (a face belongs to one tile, a shared
     vertex has the same value in both files), and both agree with the brute force."""
-    from rangemcl.mapping.meshmap import MeshMap
-    from rangemcl.mapping.store import TileStore
+    from rangemcl.maps.meshmap import MeshMap
+    from rangemcl.maps.store import TileStore
 
     rng = np.random.default_rng(4)
     v, f = meshgen.grid_patch((-30.0, -30.0, 0.0), (60.0, 0, 0), (0, 60.0, 0), 24, 24)
@@ -975,7 +975,7 @@ def test_flat_tiles_are_hit_by_grazing_rays_and_rays_along_their_borders():
     """The per-ray box test that skips the tiles a ray does not meet (``closest_hit``): tiles of a flat
     ground have boxes of zero height, and rays that graze them (1 in 50 downwards) or run exactly along a
     tile border still hit them, at the analytic range, as the whole mesh does."""
-    from rangemcl.mapping.meshmap import MeshMap
+    from rangemcl.maps.meshmap import MeshMap
     from rangemcl.raycast import padded_boxes
 
     v, f = meshgen.grid_patch((-40.0, -40.0, 0.0), (80.0, 0, 0), (0, 80.0, 0), 16, 16)

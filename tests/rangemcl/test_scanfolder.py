@@ -7,9 +7,9 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from rangemcl.dataset import write_poses_txt
+from rangemcl.datasets.kitti import write_poses_txt
+from rangemcl.datasets.sources import open_source
 from rangemcl.errors import InputError
-from rangemcl.sources import open_source
 
 
 def write_cloud(path, points, **fields):
@@ -69,12 +69,12 @@ def test_times_file_and_bad_scans(tmp_path):
 
 
 def test_every_reader_is_a_frame_source(tmp_path):
-    """The KITTI folder, a scan folder and a bag all give what :class:`rangemcl.sources.FrameSource`
+    """The KITTI folder, a scan folder and a bag all give what :class:`rangemcl.datasets.sources.FrameSource`
     promises (attributes and methods), through the one way in, ``open_source``."""
     pytest.importorskip("rosbags")
-    from rangemcl.convert import convert
-    from rangemcl.dataset import SequenceWriter
-    from rangemcl.sources import FrameSource, open_source
+    from rangemcl.datasets.convert import convert
+    from rangemcl.datasets.kitti import SequenceWriter
+    from rangemcl.datasets.sources import FrameSource, open_source
 
     kitti = tmp_path / "kitti"
     with SequenceWriter(kitti) as w:

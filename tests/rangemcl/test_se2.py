@@ -194,9 +194,7 @@ def test_se2_imports_no_other_rangemcl_module():
 
 
 def test_old_import_paths_are_the_same_functions():
-    from rangemcl import mcl, particles
+    from rangemcl.localization import particles
 
     for name in ("wrap_angle", "pose2d", "odometry_increment", "circular_mean"):
         assert getattr(particles, name) is getattr(se2, name), name
-    for name in ("se2_compose", "se2_between", "rotation_roll_pitch"):
-        assert getattr(mcl, name) is getattr(se2, name), name

@@ -1,4 +1,5 @@
-"""rangemcl.viz: a synthetic run written to an .rrd and read back with rerun's own reader (no viewer)."""
+"""rangemcl.viz.rerun: a synthetic run written to an .rrd and read back with rerun's own reader (no
+viewer)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 
 from rangemcl.errors import InputError
-from rangemcl.viz import INSTALL, DriveViewer, RunViewer, colormap, pose_matrix, thin_indices
+from rangemcl.viz.rerun import INSTALL, DriveViewer, RunViewer, colormap, pose_matrix, thin_indices
 
 pytest.importorskip("rerun")
 from rerun.chunk import RrdReader
@@ -165,7 +166,7 @@ def test_large_map_is_thinned_with_a_note(tmp_path):
 
 
 def test_mesh_map(tmp_path):
-    from rangemcl.mapping.meshmap import MeshMap
+    from rangemcl.maps.meshmap import MeshMap
 
     v, f = box_scene()
     mesh_map = MeshMap.from_mesh(v, f, is_ground=v[:, 2] < 0.1)

@@ -186,7 +186,7 @@ def test_twenty_seconds_of_mixed_driving_stay_finite_and_upright(world):
 
 
 def test_wheel_torque_never_spins_a_wheel_backwards_or_beyond_the_car():
-    from simbed.vehicle import MAX_WHEEL_NM, wheel_torque
+    from simbed.sim.vehicle import MAX_WHEEL_NM, wheel_torque
 
     rng = np.random.default_rng(3)
     for tq, rate, speed in rng.uniform([-3000, -5, 0], [3000, 40, 12], size=(500, 3)):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from rangemcl.dataset import load_sequence
+from rangemcl.datasets.kitti import load_sequence
 
 
 def simbed(*args: str) -> subprocess.CompletedProcess:
@@ -99,17 +99,17 @@ def test_export_mesh_is_the_static_scene(tmp_path):
     assert hi[0] - lo[0] >= 190 and hi[1] - lo[1] >= 190  # the 200 m town
     assert len(mesh.faces) > 10_000
     from simbed.record import scene_route
-    from simbed.world import World
+    from simbed.sim.world import World
 
     world = World("town_small")
     xy = np.loadtxt(route)
     np.testing.assert_allclose(xy, scene_route(world, "mapping").points, atol=1e-3)
-    from simbed.routes import distance_to_roads
+    from simbed.scenes.routes import distance_to_roads
 
     off = distance_to_roads(xy, world.graph)  # from the roads' centre lines: a lane, corners cut at junctions
     assert np.median(off) < world.town.road_width_m / 2 and off.max() < world.town.road_width_m
-    from rangemcl.mapping.meshmap import MeshMap
-    from rangemcl.mcl import InitSettings, drivable_cells
+    from rangemcl.localization import InitSettings, drivable_cells
+    from rangemcl.maps.meshmap import MeshMap
 
     maps = {}
     for name, extra in (("with_drive", ["--drive", str(route)]), ("without", [])):
@@ -154,7 +154,7 @@ def test_make_town_writes_a_loadable_town(tmp_path):
     r = simbed("make-town", "--seed", "4", "--size", "150", "--out", str(out))
     assert r.returncode == 0, r.stderr
     assert out.is_file() and out.with_suffix(".yaml").is_file()
-    from simbed.world import World
+    from simbed.sim.world import World
 
     world = World(out)
     assert world.town is not None and len(world.town.edges) >= len(world.town.nodes)

@@ -10,10 +10,10 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import simbed  # noqa: F401  (registers the environments)
-from rangemcl.mapping.meshmap import MeshMap
-from rangemcl.mcl import LocalizerSettings
-from simbed.agents import MCLAgent, run_episode
-from simbed.world import World
+from rangemcl.localization import LocalizerSettings
+from rangemcl.maps.meshmap import MeshMap
+from simbed.sim.world import World
+from simbed.trials.agents import MCLAgent, run_episode
 
 SMALL = {"sensor": "vlp-16", "columns": 256}
 IDS = ["simbed/LocalizationTrial-v0", "simbed/Drive-v0"]

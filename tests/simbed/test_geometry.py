@@ -1,4 +1,5 @@
-"""Tests of ``simbed.geometry`` against independent references: MuJoCo's own ``mj_ray`` and analytic shapes.
+"""Tests of ``simbed.sim.geometry`` against independent references: MuJoCo's own ``mj_ray`` and analytic
+shapes.
 
 Every geom type is placed in a tiny MJCF scene at a random rotated and translated pose, on a static body
 and on a free-joint body, and a few hundred rays aimed at it from outside go through the Warp caster (with

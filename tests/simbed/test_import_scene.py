@@ -8,11 +8,11 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from rangemcl.dataset import load_sequence
+from rangemcl.datasets.kitti import load_sequence
 from rangemcl.errors import InputError
-from simbed.import_scene import import_scene
 from simbed.record import record
-from simbed.world import World
+from simbed.scenes.import_scene import import_scene
+from simbed.sim.world import World
 
 
 def small_world() -> trimesh.Trimesh:

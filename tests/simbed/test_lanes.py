@@ -12,9 +12,9 @@ import pytest
 
 from rangemcl.errors import InputError
 from rangemcl.raycast import RayCaster
-from simbed.geometry import split_static_dynamic
-from simbed.lanes import CAR_MIN_RADIUS_M, check_lane, lane_from_waypoints, read_waypoints
-from simbed.scene_ground import SceneGround
+from simbed.scenes.lanes import CAR_MIN_RADIUS_M, check_lane, lane_from_waypoints, read_waypoints
+from simbed.scenes.scene_ground import SceneGround
+from simbed.sim.geometry import split_static_dynamic
 
 SCENE = """
 <mujoco>

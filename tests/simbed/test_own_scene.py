@@ -10,11 +10,11 @@ import mujoco
 import numpy as np
 import pytest
 
-from rangemcl.dataset import load_sequence
+from rangemcl.datasets.kitti import load_sequence
 from rangemcl.errors import InputError
 from rangemcl.sensors import load_spec
 from simbed.record import record
-from simbed.world import World
+from simbed.sim.world import World
 
 PITCH = math.radians(4.0)
 HALF = (6.0, 6.0, 0.5)  # half length, width, thickness of each ramp (room for a lane each way)
@@ -284,7 +284,7 @@ def test_a_variant_the_scene_does_not_have_is_one_line(tmp_path):
 def test_the_example_scenes_drive_their_routes(tmp_path, scene, routes, variant):
     """scenes/examples: a scene written as MJCF and a mesh world made by import-scene; their routes
     pass the checks and the car drives them with actors beside it."""
-    from simbed.world import scenes_dir
+    from simbed.sim.world import scenes_dir
 
     ex = scenes_dir() / "examples"
     for k, route in enumerate(routes):

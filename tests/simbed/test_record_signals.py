@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rangemcl.dataset import load_sequence
+from rangemcl.datasets.kitti import load_sequence
 
 
 def _start(out: Path) -> subprocess.Popen:

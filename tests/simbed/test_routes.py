@@ -8,7 +8,14 @@ import numpy as np
 import pytest
 
 from rangemcl.errors import InputError
-from simbed.routes import RoadGraph, covering_walk, distance_to_roads, lane_polyline, make_route, random_walk
+from simbed.scenes.routes import (
+    RoadGraph,
+    covering_walk,
+    distance_to_roads,
+    lane_polyline,
+    make_route,
+    random_walk,
+)
 
 
 def grid_graph(n: int = 3, spacing: float = 60.0) -> RoadGraph:

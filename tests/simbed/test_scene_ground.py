@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from rangemcl.raycast import RayCaster
-from simbed.geometry import split_static_dynamic
-from simbed.scene_ground import SceneGround
+from simbed.scenes.scene_ground import SceneGround
+from simbed.sim.geometry import split_static_dynamic
 
 RAMP_DEG = 8.0
 SCENE = f"""

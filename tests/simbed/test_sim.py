@@ -11,14 +11,14 @@ import mujoco
 import numpy as np
 import pytest
 
-from rangemcl.dataset import load_sequence
+from rangemcl.datasets.kitti import load_sequence
 from rangemcl.sensors import load_spec
-from simbed.actors import ACTOR_KINDS
-from simbed.lidar import LABEL_ACTOR
 from simbed.record import record
-from simbed.routes import Route, make_route
-from simbed.sim import Drive
-from simbed.world import World, scenes_dir
+from simbed.scenes.routes import Route, make_route
+from simbed.sim.actors import ACTOR_KINDS
+from simbed.sim.drive import Drive
+from simbed.sim.lidar import LABEL_ACTOR
+from simbed.sim.world import World, scenes_dir
 
 WALL_X = 40.0
 

@@ -1,4 +1,4 @@
-"""simbed.towngen: seeded towns whose roads, terrain, buildings and parked cars keep their promises."""
+"""simbed.scenes.towngen: seeded towns whose roads, terrain, buildings and parked cars keep their promises."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from PIL import Image
 
 from rangemcl.errors import InputError
 from simbed import towngen
-from simbed.towngen import (
+from simbed.scenes.towngen import (
     DEFAULT_STYLE,
     SHIPPED_TOWNS,
     TownInfo,
@@ -583,7 +583,7 @@ def test_a_town_of_many_bodies_gets_the_arena_its_collision_step_needs():
     The size the generator writes is enough for a scene of that many bodies; small towns keep the default."""
     import mujoco
 
-    from simbed.towngen import _arena_size
+    from simbed.scenes.towngen import _arena_size
 
     assert _arena_size(1499) == []
     n = 3000

@@ -11,7 +11,7 @@ from dataclasses import replace
 import pytest
 
 from rangemcl.errors import InputError
-from simbed.trials import (
+from simbed.trials.suites import (
     METHOD_VERSION,
     SUITES,
     SuiteConfig,
@@ -212,7 +212,7 @@ def test_report_sets_methods_side_by_side_with_their_event_counts(tmp_path):
         row("paper", "vlp-16", False, "", 2, 1, 0),
         row("paper", "vlp-16", True, "40", 0, 0, 1),
     ]
-    from simbed.trials import write_report
+    from simbed.trials.suites import write_report
 
     md, _ = write_report("sensors", rows, tmp_path)
     table = md.read_text()
@@ -275,7 +275,7 @@ def test_suite_folders_follow_the_output_policy(tmp_path):
 def test_drive_keys_of_scene_and_route_files_stay_under_out(tmp_path):
     """A scene or route given as a path names its drive folder by the file's stem and a hash of its absolute
     path (an absolute --scene used to put the drives outside --out); plain names are kept as they are."""
-    from simbed.trials import drive_key
+    from simbed.trials.suites import drive_key
 
     plain = drive_key("town_small", "os1-64", "test", 1, 10, 7, 800)
     assert plain == "town_small-os1-64-test-v1-a10-d7-n800"

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from rangemcl import meshgen
+from rangemcl.localization import LocalizerSettings, MotionSettings, ObservationSettings, build_localizer
 from rangemcl.localization.factory import odometry_calibrator
-from rangemcl.mapping.meshmap import MeshMap
-from rangemcl.mcl import LocalizerSettings, MotionSettings, ObservationSettings, build_localizer
+from rangemcl.maps.meshmap import MeshMap
 from rangemcl.rangeimage import RangeImageGeometry
 from rangemcl.raycast import RayCaster
 from rangemcl.se2 import se2_between, se2_compose

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from rangemcl import meshgen
+from rangemcl.localization import LocalizerSettings, ObservationSettings, build_localizer
 from rangemcl.localization.hypotheses import (
     ConvergenceTest,
     allocate,
@@ -20,10 +21,10 @@ from rangemcl.localization.hypotheses import (
     summarize,
 )
 from rangemcl.localization.models import ScoringModel
-from rangemcl.mapping.meshmap import MeshMap
-from rangemcl.mcl import LocalizerSettings, ObservationSettings, build_localizer, se2_between
+from rangemcl.maps.meshmap import MeshMap
 from rangemcl.rangeimage import RangeImageGeometry
 from rangemcl.raycast import RayCaster
+from rangemcl.se2 import se2_between
 from rangemcl.sensors import load_spec
 
 HEIGHT = 1.73
@@ -274,14 +275,14 @@ def test_over_a_map_within_a_budget_the_second_opinion_finds_a_place_whose_tiles
     tmp_path, monkeypatch, consult
 ):
     """Two streets 100 m apart (B with a third of A's buildings), the map in 25 m tiles seen through a
-    budget of about half the map (``rangemcl.mapping.view.MapView``). The filter is put on street B
+    budget of about half the map (``rangemcl.maps.view.MapView``). The filter is put on street B
     while the car drives street A, and its probation asks the second opinion: street A's tiles are not
     held, so the view loads them in the background (``consult``), and once they are in, the opinion
     scores A's places as the whole map would and the filter declares itself lost, a few updates after
     the filter with the map held whole. Without ``consult`` A's places are scored against tiles that are
     not there, and the wrong street stands (for more than three times as
     many updates as with the whole map, if not to the end)."""
-    from rangemcl.mapping.view import MapView
+    from rangemcl.maps.view import MapView
 
     ground = meshgen.grid_patch((-40.0, -40.0, 0.0), (260.0, 0, 0), (0, 200.0, 0), 65, 50)
     v, f = meshgen.merge([ground, *street(0.0, 0.0, False, 3), *street(0.0, 100.0, False, 11)[::3]])

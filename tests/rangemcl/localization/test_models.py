@@ -11,9 +11,9 @@ import pytest
 
 from rangemcl import meshgen
 from rangemcl.errors import InputError
+from rangemcl.localization import LocalizerSettings, ObservationSettings, build_localizer, prepare_rays
 from rangemcl.localization.models import MODEL_NAMES, make_model, surface_voxels, wasserstein_1d
-from rangemcl.mapping.meshmap import MeshMap
-from rangemcl.mcl import LocalizerSettings, ObservationSettings, build_localizer, prepare_rays
+from rangemcl.maps.meshmap import MeshMap
 from rangemcl.rangeimage import RangeImageGeometry
 from rangemcl.raycast import RayCaster
 from rangemcl.sensors import load_spec
@@ -86,7 +86,7 @@ def test_surface_voxels_of_a_map_are_cached_and_follow_the_mesh_file(tmp_path, m
     import os
 
     import rangemcl.localization.models as models
-    from rangemcl.mapping.meshmap import MeshMap
+    from rangemcl.maps.meshmap import MeshMap
 
     monkeypatch.setenv("RANGEMCL_CACHE_DIR", str(tmp_path / "cache"))
     v = np.array([[0, 0, 0], [4, 0, 0], [4, 3, 0], [0, 3, 0]], float)

@@ -25,7 +25,7 @@ from rangemcl.localization.place_prior import (
     sequence_costs,
     top_beam_deg,
 )
-from rangemcl.mapping.meshmap import MeshMap
+from rangemcl.maps.meshmap import MeshMap
 from rangemcl.rangeimage import RangeImageGeometry
 from rangemcl.raycast import RayCaster
 from rangemcl.sensors import load_spec
@@ -198,7 +198,7 @@ def test_a_prior_rendered_with_tiles_held_coarse_is_not_taken_for_the_whole_maps
     from the coarse level: stored under its own key, which later runs within a budget load and a run with
     the whole map does not; within a budget that holds them all, the prior is the whole map's."""
     from rangemcl.localization.place_prior import PARTIAL, prior_key
-    from rangemcl.mapping.view import MapView
+    from rangemcl.maps.view import MapView
 
     _t, caster, m, _ = town
     m.save(tmp_path / "map", coarse_ratio=0.05)

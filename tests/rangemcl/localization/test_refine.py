@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from rangemcl import meshgen
+from rangemcl.localization import LocalizerSettings, ObservationSettings, build_localizer, scan_refiner
 from rangemcl.localization.settings import RefineSettings
-from rangemcl.mapping.meshmap import MeshMap
-from rangemcl.mcl import LocalizerSettings, ObservationSettings, build_localizer, scan_refiner
+from rangemcl.maps.meshmap import MeshMap
 from rangemcl.rangeimage import RangeImageGeometry
 from rangemcl.raycast import RayCaster
 from rangemcl.se2 import se2_compose, se2_inverse

@@ -25,16 +25,16 @@ from rangemcl.localization.calibration import OdometryCalibrator, ParticleCalibr
 from rangemcl.localization.factory import build_localizer
 from rangemcl.localization.filter import MonteCarloLocalizer
 from rangemcl.localization.lost import LostDetector, SignalWatch
+from rangemcl.localization.particles import MotionNoise
 from rangemcl.localization.refine import ScanRefiner
 from rangemcl.localization.scan_prep import select_rays
 from rangemcl.localization.settings import LocalizerSettings
 from rangemcl.localization.spread import drivable_cells, uniform_particles
-from rangemcl.mapping.meshmap import MeshMap
-from rangemcl.particles import MotionNoise
+from rangemcl.maps.meshmap import MeshMap
 
 # per-call inputs of a core (not settings): the only parameters with a default
 PER_CALL = {"select_rays": {"fire_time_s", "frame_period_s", "frame_motion", "roll_pitch", "sensor_height_m"}}
-# keys that the run pipeline reads, not the filter: rangemcl.localize and rangemcl.mapping.view
+# keys that the run pipeline reads, not the filter: rangemcl.localization.pipeline and rangemcl.maps.view
 NOT_IN_THE_FILTER = {"map_memory_mb"}
 
 

@@ -8,7 +8,7 @@ import pytest
 
 from rangemcl.errors import InputError
 from rangemcl.mapping.assemble import assemble_map
-from rangemcl.mapping.meshmap import MeshMap
+from rangemcl.maps.meshmap import MeshMap
 
 
 def random_tiles(rng, tmp_path, tiles, size=20.0, margin=3.0):

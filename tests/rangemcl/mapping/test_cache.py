@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from rangemcl import meshgen
-from rangemcl.mapping.cache import TileCache, tile_distances
-from rangemcl.mapping.meshmap import MeshMap
-from rangemcl.mapping.store import TileStore
+from rangemcl.maps.cache import TileCache, tile_distances
+from rangemcl.maps.meshmap import MeshMap
+from rangemcl.maps.store import TileStore
 
 
 @pytest.fixture(scope="module")
@@ -83,7 +83,7 @@ def test_a_wanted_tile_is_not_read_again(store):
 def test_tiles_in_a_caster_leave_it_when_evicted(store):
     """With :func:`caster_tiles` the cache's tiles are meshes of a RayCaster: an evicted tile is taken out
     of the scene (rays pass where it was), a held one is hit."""
-    from rangemcl.mapping.cache import caster_tiles
+    from rangemcl.maps.cache import caster_tiles
     from rangemcl.raycast import RayCaster
 
     caster = RayCaster("cpu", threads=1)
@@ -160,7 +160,7 @@ def test_extra_places_take_what_the_car_leaves_and_are_never_waited_for(store):
     names them they are the first to go."""
     import time
 
-    from rangemcl.mapping.cache import EXTRA_LOADS
+    from rangemcl.maps.cache import EXTRA_LOADS
 
     cache, _one, ij = slow_cache(store, 6, 0.2)
     try:
@@ -199,7 +199,7 @@ def test_a_broken_tile_is_reported_once_and_left_out(store, tmp_path):
     with the other tiles, and never reads it again."""
     import shutil
 
-    from rangemcl.mapping.store import TileStore as Store
+    from rangemcl.maps.store import TileStore as Store
 
     d = tmp_path / "map"
     shutil.copytree(store.map_dir, d)
@@ -221,7 +221,7 @@ def test_a_broken_tile_is_reported_once_and_left_out(store, tmp_path):
 def wavy(tmp_path_factory):
     """A 5 x 5 grid of 20 m tiles of a wavy surface (z = 0.5 sin(x/3) cos(y/4), 2 x 1,600 triangles a
     tile), with its coarse level."""
-    from rangemcl.mapping.coarse import add_coarse_level
+    from rangemcl.maps.coarse import add_coarse_level
 
     v, f = meshgen.grid_patch((0.0, 0.0, 0.0), (100.0, 0, 0), (0, 100.0, 0), 200, 200)
     v = v.copy()
@@ -236,7 +236,7 @@ def wavy(tmp_path_factory):
 def test_the_coarse_level_keeps_each_tiles_footprint(wavy):
     """Decimated to 5 %, a tile still covers its square (its border stays: a vertical ray anywhere in the
     map, seams included, hits), and its surface stays near the full one (median a few cm here)."""
-    from rangemcl.mapping.coarse import decimate_tile
+    from rangemcl.maps.coarse import decimate_tile
     from rangemcl.raycast import RayCaster
 
     store, v, f = wavy
@@ -266,7 +266,7 @@ def test_the_coarse_level_keeps_each_tiles_footprint(wavy):
 def test_where_the_budget_is_short_the_farther_tiles_are_coarse(wavy):
     """Every wanted tile is held, the nearest at full resolution and the farther ones at the coarse level,
     within the budget; with room for all, all are full."""
-    from rangemcl.mapping.cache import COARSE
+    from rangemcl.maps.cache import COARSE
 
     store, _v, _f = wavy
     focus = [[50.0, 50.0]]
@@ -307,9 +307,9 @@ def test_a_budget_of_one_tile_swaps_by_waiting(store):
 _RESIDENT_PROBE = r"""
 import re, sys
 import numpy as np
-from rangemcl.mapping.cache import TileCache, caster_tiles
-from rangemcl.heap import return_freed_memory
-from rangemcl.mapping.store import TileStore
+from rangemcl.maps.cache import TileCache, caster_tiles
+from rangemcl.common.heap import return_freed_memory
+from rangemcl.maps.store import TileStore
 from rangemcl.raycast import RayCaster
 
 def resident():

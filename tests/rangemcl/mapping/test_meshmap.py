@@ -1,4 +1,4 @@
-"""The mesh map (``rangemcl.mapping.meshmap``): tiling, ground grid, ground labels, disk round trips,
+"""The mesh map (``rangemcl.maps.meshmap``): tiling, ground grid, ground labels, disk round trips,
 import, and every error path.
 
 Expected values come from this file: tiles from ``floor((centroid - floor(min / s)·s) / s)`` computed
@@ -20,7 +20,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from rangemcl.errors import InputError
-from rangemcl.mapping.meshmap import (
+from rangemcl.maps.meshmap import (
     GroundGrid,
     MeshMap,
     import_mesh,
@@ -28,7 +28,7 @@ from rangemcl.mapping.meshmap import (
     map_summary,
     read_ply_binary,
 )
-from rangemcl.mapping.store import TileStore
+from rangemcl.maps.store import TileStore
 
 GROUND = (128, 128, 128)
 OTHER = (200, 120, 60)
@@ -613,9 +613,9 @@ def test_map_info_reads_a_tiled_map_one_tile_at_a_time(tmp_path, save_v1):
     summary (border vertices counted in each tile file), its coarse level and place prior, and the size of
     every file; of a map of format 1, the whole map's summary."""
     from rangemcl.localization.place_prior import describe_prior_file
-    from rangemcl.mapping.coarse import add_coarse_level
     from rangemcl.mapping.info import map_info
-    from rangemcl.mapping.meshmap import map_summary
+    from rangemcl.maps.coarse import add_coarse_level
+    from rangemcl.maps.meshmap import map_summary
 
     m = make_map()
     d = tmp_path / "v2"
@@ -646,7 +646,7 @@ def test_map_info_reads_a_tiled_map_one_tile_at_a_time(tmp_path, save_v1):
 def test_a_drive_file_reads_as_waypoints_kitti_or_tum_poses(tmp_path):
     """``import-mesh --drive``: the same path from 'x y' lines, KITTI poses and TUM poses, thinned to a
     point a metre; a malformed line names the file and line."""
-    from rangemcl.mapping.meshmap import read_drive_xy
+    from rangemcl.maps.meshmap import read_drive_xy
 
     t = np.linspace(0.0, 20.0, 81)
     xy = np.column_stack([3.0 * t, np.sin(t)])

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from rangemcl.errors import InputError
-from rangemcl.mapping.meshmap import GROUND_RGB, NON_GROUND_RGB, import_mesh
 from rangemcl.mapping.stream_import import import_mesh_streaming, ply_layout
+from rangemcl.maps.meshmap import GROUND_RGB, NON_GROUND_RGB, import_mesh
 
 
 def write_binary_ply(path: Path, v, f, *, rgb=None, endian="<", vertex_type="f8", extra_face=False) -> Path:

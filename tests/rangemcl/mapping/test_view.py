@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from rangemcl.errors import InputError
-from rangemcl.localize import RunOptions, localize_sequence
-from rangemcl.mapping.meshmap import MeshMap
-from rangemcl.mcl import LocalizerSettings
+from rangemcl.localization import LocalizerSettings
+from rangemcl.localization.pipeline import RunOptions, localize_sequence
+from rangemcl.maps.meshmap import MeshMap
 
 
 @pytest.fixture(scope="module")
@@ -67,7 +67,7 @@ def test_a_small_budget_holds_and_says_what_it_left_out(tiled, tmp_path):
     whole = run(seq, map_dir, tmp_path / "whole", settings(20.0))
     held = [int(r["map_tiles"]) for r in frames(tmp_path / "whole")]
     assert set(held) == {-1}
-    from rangemcl.mapping.store import TileStore
+    from rangemcl.maps.store import TileStore
 
     store = TileStore.open(map_dir)
     one = 62 * max(e.triangles for e in store.entries) + 12 * max(e.vertices for e in store.entries)
@@ -88,8 +88,8 @@ def test_with_a_coarse_level_the_farther_tiles_come_coarse(tiled, tmp_path):
     track stays within 5 cm of the whole map's RMSE."""
     import shutil
 
-    from rangemcl.mapping.coarse import add_coarse_level
-    from rangemcl.mapping.store import TileStore
+    from rangemcl.maps.coarse import add_coarse_level
+    from rangemcl.maps.store import TileStore
 
     seq, map_dir = tiled
     coarse_dir = tmp_path / "map10c"
@@ -117,7 +117,7 @@ def test_a_slow_disk_does_not_hold_up_a_tracking_step(tiled, tmp_path, monkeypat
     """Each tile takes 0.15 s to read: the tiles around the start pose are loaded before the first frame
     (the run's start-up), and no update waits (0 ms): one goes on with what is loaded and logs the tiles
     still loading as left out."""
-    from rangemcl.mapping.store import TileStore
+    from rangemcl.maps.store import TileStore
 
     read = TileStore.read
 
@@ -137,7 +137,7 @@ def test_a_slow_disk_does_not_hold_up_a_tracking_step(tiled, tmp_path, monkeypat
 
 
 def test_a_map_of_format_1_is_refused_with_the_fix(small_town_map, tmp_path, save_v1):
-    from rangemcl.mapping.view import MapView
+    from rangemcl.maps.view import MapView
     from rangemcl.raycast import RayCaster
 
     _, map_dir = small_town_map
@@ -162,7 +162,7 @@ def test_the_default_is_sized_from_the_machine(tiled, monkeypatch):
     """No budget given: the whole map when it takes under a quarter of the memory available, else a view
     within that quarter; a budget in the settings (the config's ``map_memory_mb``) is a view."""
     from rangemcl.mapping import view
-    from rangemcl.mapping.store import TileStore
+    from rangemcl.maps.store import TileStore
 
     _, map_dir = tiled
     m, caster = view.open_map(map_dir)
@@ -182,10 +182,10 @@ def test_the_default_is_sized_from_the_machine(tiled, monkeypatch):
 
 
 def test_the_agent_takes_the_budget_from_its_settings(tiled):
-    from rangemcl.mapping.view import MapView
+    from rangemcl.maps.view import MapView
     from rangemcl.rangeimage import RangeImageGeometry
     from rangemcl.sensors import load_spec
-    from simbed.agents import MCLAgent
+    from simbed.trials.agents import MCLAgent
 
     _, map_dir = tiled
     s = settings()
@@ -200,8 +200,8 @@ def test_what_the_filter_derives_from_the_map_counts_against_the_budget(tiled, t
     held whole: each is counted against ``--map-memory`` under its name, and the tiles get what is left."""
     import shutil
 
-    from rangemcl.mapping.view import open_map
-    from rangemcl.mcl import build_localizer, map_place_prior
+    from rangemcl.localization import build_localizer, map_place_prior
+    from rangemcl.maps.view import open_map
 
     _, source = tiled
     map_dir = shutil.copytree(source, tmp_path / "map")
@@ -231,7 +231,7 @@ def test_the_likelihood_field_is_made_tile_by_tile_within_the_budget(tiled, tmp_
         TiledLikelihoodFieldModel,
         tile_surface_voxels,
     )
-    from rangemcl.mapping.view import MapView
+    from rangemcl.maps.view import MapView
     from rangemcl.raycast import RayCaster
 
     monkeypatch.setenv("RANGEMCL_CACHE_DIR", str(tmp_path / "cache"))
@@ -274,7 +274,7 @@ def test_a_budget_too_small_for_the_likelihood_field_is_one_clear_line(tiled, tm
     """The voxels take about 4x the tiles' bytes: a budget that holds the tiles in range but not their
     voxels as well is refused with the size it needs, instead of evicting the tiles the field follows."""
     from rangemcl.localization.models import TiledLikelihoodFieldModel
-    from rangemcl.mapping.view import MapView
+    from rangemcl.maps.view import MapView
     from rangemcl.raycast import RayCaster
 
     monkeypatch.setenv("RANGEMCL_CACHE_DIR", str(tmp_path / "cache"))
@@ -305,7 +305,7 @@ def test_a_slow_likelihood_field_tree_does_not_hold_up_a_tracking_update(tiled, 
     (the view's update without waiting) goes on with the trees that are ready and says how many are
     still being made; they are in at a later update."""
     import rangemcl.localization.models as models
-    from rangemcl.mapping.view import MapView
+    from rangemcl.maps.view import MapView
     from rangemcl.raycast import RayCaster
 
     monkeypatch.setenv("RANGEMCL_CACHE_DIR", str(tmp_path / "cache"))
@@ -342,10 +342,10 @@ def test_a_slow_likelihood_field_tree_does_not_hold_up_a_tracking_update(tiled, 
 
 
 def test_both_kinds_of_map_follow_the_map_protocol(small_town_map):
-    """A whole map and a map within a budget give what :class:`rangemcl.mapping.meshmap.Map` promises,
+    """A whole map and a map within a budget give what :class:`rangemcl.maps.meshmap.Map` promises,
     the same figures where both hold them, and say which they are (``budgeted``)."""
-    from rangemcl.mapping.meshmap import Map
-    from rangemcl.mapping.view import open_map
+    from rangemcl.maps.meshmap import Map
+    from rangemcl.maps.view import open_map
 
     _, map_dir = small_town_map
     whole, _ = open_map(map_dir)
