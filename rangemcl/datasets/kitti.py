@@ -36,7 +36,7 @@ import math
 import os
 import shutil
 import zipfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +45,7 @@ import yaml
 
 from rangemcl.common.atomic import atomic_write
 from rangemcl.common.yamlio import parse_yaml, read_text
+from rangemcl.datasets.recording import Recording
 from rangemcl.datasets.scanio import read_scan_bin, write_scan_bin
 from rangemcl.errors import InputError
 
@@ -255,7 +256,7 @@ def _meta_text(meta: dict[str, Any]) -> str:
 
 
 @dataclass
-class Sequence:
+class Sequence(Recording):
     """A sequence folder: scans are read lazily, everything else is loaded and validated.
 
     ``poses`` and ``odometry`` are LiDAR poses (``file @ Tr``), ``(N, 4, 4)`` float64; ``None`` where the
@@ -264,13 +265,7 @@ class Sequence:
 
     root: Path
     scan_paths: list[Path]
-    poses: np.ndarray | None = None
-    times: np.ndarray | None = None
-    odometry: np.ndarray | None = None
-    imu_roll_pitch: np.ndarray | None = None
-    calib_Tr: np.ndarray = field(default_factory=lambda: np.eye(4))
-    meta: dict[str, Any] = field(default_factory=dict)
-    calib_source: str = "calib.txt"  # or "identity (no calib.txt)": said, never silently assumed
+    # calib_source: "calib.txt", or "identity (no calib.txt)": said, never silently assumed
 
     def __len__(self) -> int:
         return len(self.scan_paths)

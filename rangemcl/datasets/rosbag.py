@@ -44,6 +44,7 @@ import numpy as np
 import yaml
 
 from rangemcl.datasets import pointcloud2 as pc2
+from rangemcl.datasets.recording import Recording
 from rangemcl.errors import InputError
 from rangemcl.se2 import interpolate_poses, invert_rigid, matrix_from_quat, quat_from_matrix
 
@@ -493,7 +494,7 @@ def sensor_to_base_transform(values) -> np.ndarray:
 
 
 @dataclass
-class BagSequence:
+class BagSequence(Recording):
     """A bag read as a sequence: the same attributes and methods as :class:`rangemcl.datasets.kitti.Sequence`.
 
     Scans are decoded when asked for (the last one is kept); poses, odometry, times and IMU roll/pitch are
@@ -501,13 +502,7 @@ class BagSequence:
 
     root: Path
     topic: str
-    poses: np.ndarray | None = None
-    times: np.ndarray | None = None
-    odometry: np.ndarray | None = None
-    imu_roll_pitch: np.ndarray | None = None
-    calib_Tr: np.ndarray = field(default_factory=lambda: np.eye(4))
-    meta: dict[str, Any] = field(default_factory=dict)
-    calib_source: str = "identity (bag scans are in the sensor frame)"
+    calib_source: str = field(default="identity (bag scans are in the sensor frame)", kw_only=True)
     stamp_to_end_s: float = 0.0
     odometry_source: str = "none"
     _log_ns: list[int] = field(default_factory=list, repr=False)

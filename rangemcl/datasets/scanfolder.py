@@ -15,11 +15,11 @@ import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from rangemcl.datasets import pointcloud2 as pc2
+from rangemcl.datasets.recording import Recording
 from rangemcl.errors import InputError
 
 SUFFIXES = (".pcd", ".ply")
@@ -43,18 +43,12 @@ def is_scan_folder(path: Path) -> bool:
 
 
 @dataclass
-class ScanFolderSequence:
+class ScanFolderSequence(Recording):
     """The same attributes and methods as :class:`rangemcl.datasets.kitti.Sequence`."""
 
     root: Path
     scan_paths: list[Path]
-    poses: np.ndarray | None = None
-    times: np.ndarray | None = None
-    odometry: np.ndarray | None = None
-    imu_roll_pitch: np.ndarray | None = None
-    calib_Tr: np.ndarray = field(default_factory=lambda: np.eye(4))
-    meta: dict[str, Any] = field(default_factory=dict)
-    calib_source: str = "identity (scans are in the sensor frame)"
+    calib_source: str = field(default="identity (scans are in the sensor frame)", kw_only=True)
     _cache: tuple[int, pc2.Cloud] | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
