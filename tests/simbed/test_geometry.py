@@ -22,7 +22,7 @@ from scipy.spatial.transform import Rotation
 
 from rangemcl.errors import InputError
 from rangemcl.raycast import RayCaster
-from simbed import geometry as G
+from simbed.sim import geometry as G
 
 SEGMENTS = 64  # sagitta 0.12 % of the radius: tight enough that a wrong radius or pose shows
 N_RAYS = 300

@@ -18,7 +18,6 @@ import yaml
 from PIL import Image
 
 from rangemcl.errors import InputError
-from simbed import towngen
 from simbed.scenes.towngen import (
     DEFAULT_STYLE,
     SHIPPED_TOWNS,
@@ -28,6 +27,7 @@ from simbed.scenes.towngen import (
     generate_preset,
     generate_town,
     load_town_info,
+    mjcf,
     parked_variant_bodies,
     use_parked_variant,
 )
@@ -495,11 +495,11 @@ def test_png_round_trip_through_pillow(tmp_path, town):
     rng = np.random.default_rng(5)
     img = rng.integers(0, 256, size=(37, 53, 3), dtype=np.uint8)  # (H, W, 3), odd sizes
     path = tmp_path / "x.img"
-    towngen._write_png(path, img)
+    mjcf.write_png(path, img)
     back = Image.open(path)
     assert back.format == "PNG" and back.mode == "RGB"
     np.testing.assert_array_equal(np.asarray(back), img)
-    towngen._write_png(tmp_path / "y.img", img)
+    mjcf.write_png(tmp_path / "y.img", img)
     assert (tmp_path / "y.img").read_bytes() == path.read_bytes()  # deterministic
     # the town's texture as MuJoCo decodes it is the array pillow reads back
     info, m = town
@@ -583,9 +583,9 @@ def test_a_town_of_many_bodies_gets_the_arena_its_collision_step_needs():
     The size the generator writes is enough for a scene of that many bodies; small towns keep the default."""
     import mujoco
 
-    from simbed.scenes.towngen import _arena_size
+    from simbed.scenes.towngen.mjcf import arena_size
 
-    assert _arena_size(1499) == []
+    assert arena_size(1499) == []
     n = 3000
     bodies = "".join(
         f'<body pos="{i % 60 * 3} {i // 60 * 3} 0.5"><geom type="box" size="0.5 0.5 0.5"/></body>'
@@ -598,6 +598,6 @@ def test_a_town_of_many_bodies_gets_the_arena_its_collision_step_needs():
         assert model.nbody == n
         mujoco.mj_forward(model, mujoco.MjData(model))
 
-    forward(_arena_size(n))
+    forward(arena_size(n))
     with pytest.raises(mujoco.FatalError, match="out of memory"):
         forward(['<size memory="8M"/>'])  # the matrix alone takes 18 MB
