@@ -9,7 +9,7 @@ import pytest
 
 from rangemcl.errors import InputError
 from rangemcl.localization import place_prior as pp
-from rangemcl.mapping import meshmap
+from rangemcl.maps import meshmap
 from rangemcl.raycast import clean_mesh
 
 

@@ -161,7 +161,7 @@ def test_a_map_of_format_1_is_refused_with_the_fix(small_town_map, tmp_path, sav
 def test_the_default_is_sized_from_the_machine(tiled, monkeypatch):
     """No budget given: the whole map when it takes under a quarter of the memory available, else a view
     within that quarter; a budget in the settings (the config's ``map_memory_mb``) is a view."""
-    from rangemcl.mapping import view
+    from rangemcl.maps import view
     from rangemcl.maps.store import TileStore
 
     _, map_dir = tiled
