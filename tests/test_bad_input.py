@@ -1078,6 +1078,18 @@ def test_file_outputs_are_replaced_only_with_overwrite_and_their_folders_made(ba
     assert (d / "new_folder/deeper/scene_ground.bin").is_file()
 
 
+def test_a_checkpoint_of_another_version_is_refused_in_one_line(base, tmp_path):
+    """The filter's checkpoint holds its objects as that version lays them out: a folder interrupted by
+    another version of rangemcl is refused before any work, naming both versions and the way out."""
+    from rangemcl import __version__
+    from rangemcl.common.checkpoint import save_state
+
+    d = _case_folder(base, tmp_path, {"results/.resume": DIR})
+    save_state(d / "results/.resume/state.npz", {}, {"fingerprint": {"rangemcl_version": "0.16.0"}})
+    words = ["results", "written by rangemcl 0.16.0", f"this is {__version__}", "--overwrite"]
+    _check(d, LOC.replace("{d}/o", "{d}/results") + " --resume", words)
+
+
 def test_in_process_equals_a_process(base, tmp_path):
     """A few cases as real processes: the same line, the same status."""
     d = _case_folder(base, tmp_path, {"seq/poses.txt": ELEVEN})

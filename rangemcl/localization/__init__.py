@@ -9,7 +9,10 @@
 * ``lost``: the evidence watch and the second opinion of a converged filter;
 * ``refine`` and ``calibration``: scan-to-mesh refinement of a converged pose, and the odometry's online
   calibration;
-* ``filter``: the core (``MonteCarloLocalizer.step``) that composes them;
+* ``filter``: the core (``MonteCarloLocalizer.step``) that composes them, with its three phases beside
+  it: ``search`` (the global search while not converged: the prior's draws, the polish of the hypotheses,
+  the convergence test), ``tracking`` (a converged filter's refinement, odometry calibration and
+  resampling) and ``recovery`` (the lost watch, the second opinion and the re-spread);
 * ``particles``: the odometry motion model and resampling;
 * ``settings`` and ``factory``: the YAML settings (every default) and the factories that build the filter
   and its parts from them;

@@ -7,19 +7,26 @@ LiDAR frame (:class:`MonteCarloLocalizer`).
 2. **Weigh**: a subset of the scan's points (``select_rays``: :mod:`rangemcl.localization.scan_prep`) is
    cast from every particle through the map (:mod:`rangemcl.localization.renderer`) and scored by the
    observation model (:mod:`rangemcl.localization.models`; the paper's Eq. 5 by default).
-3. **Search** (global localization): particles start uniform over the drivable area
-   (:mod:`rangemcl.localization.spread`), a share of them redrawn at the first update where the place
-   prior says the scan fits (:mod:`rangemcl.localization.place_prior`); the cloud is kept as hypotheses
-   and convergence is declared when one has won (:mod:`rangemcl.localization.hypotheses`), or, with
-   ``convergence="tiles"``, the paper's rule (all particles in ``tiles`` tiles); then ``converged_count``
-   particles are kept.
-4. **Refine and calibrate** (a converged filter): the update's rays are aligned to the mesh
-   (:mod:`rangemcl.localization.refine`) and the cloud moved by the correction when it lies within the
-   cloud's own spread (else refused and counted); the odometry's scale and the gyro's bias are estimated
-   from the estimate's motion against the raw odometry's (:mod:`rangemcl.localization.calibration`) and
-   applied to every later prediction.
-5. **Lost**: a converged filter watches its evidence and asks the place prior for a second opinion
-   (:mod:`rangemcl.localization.lost`); when lost, it spreads again and relocalizes.
+3. **Search** (global localization: :mod:`rangemcl.localization.search`): particles start uniform over
+   the drivable area (:mod:`rangemcl.localization.spread`), a share of them redrawn at the first update
+   where the place prior says the scan fits (:mod:`rangemcl.localization.place_prior`); the cloud is kept
+   as hypotheses and convergence is declared when one has won (:mod:`rangemcl.localization.hypotheses`),
+   or, with ``convergence="tiles"``, the paper's rule (all particles in ``tiles`` tiles); then
+   ``converged_count`` particles are kept.
+4. **Refine and calibrate** (a converged filter: :mod:`rangemcl.localization.tracking`): the update's
+   rays are aligned to the mesh (:mod:`rangemcl.localization.refine`) and the cloud moved by the
+   correction when it lies within the cloud's own spread (else refused and counted); the odometry's scale
+   and the gyro's bias are estimated from the estimate's motion against the raw odometry's
+   (:mod:`rangemcl.localization.calibration`) and applied to every later prediction.
+5. **Lost** (:mod:`rangemcl.localization.recovery`): a converged filter watches its evidence and asks the
+   place prior for a second opinion (:mod:`rangemcl.localization.lost`); when lost, it spreads again and
+   relocalizes.
+
+This module holds what composes them: the constructor, the spread and the start at a pose, the place
+priors (loaded or rendered once, read by the search and by the second opinion), the step, the prediction,
+the weighing and the estimate. The search and the lost watch are mixins of :class:`MonteCarloLocalizer`
+(they rewrite or read its cloud throughout); the tracking, whose state is its own, is a part it composes
+(``MonteCarloLocalizer.tracking``).
 
 The constructor takes plain values and the parts it composes (observation model, ray selection, drivable
 area, lost detector); :func:`rangemcl.localization.factory.build_localizer` makes them from the YAML
@@ -39,26 +46,11 @@ import numpy as np
 
 from rangemcl.errors import InputError
 from rangemcl.localization.calibration import OdometryCalibrator, ParticleCalibration
-from rangemcl.localization.hypotheses import (
-    ConvergenceTest,
-    cluster_labels,
-    kld_sample_size,
-    occupied_bins,
-    resample_by_cluster,
-    summarize,
-)
-from rangemcl.localization.lost import (
-    LostDetector,
-    Opinion,
-    Polish,
-    candidate_particles,
-    history_fit,
-    second_opinion,
-)
+from rangemcl.localization.hypotheses import ConvergenceTest
+from rangemcl.localization.lost import LostDetector
 from rangemcl.localization.particles import (
     MotionNoise,
     effective_sample_size,
-    low_variance_resample,
     normalize_log_weights,
     pose_estimate,
     sample_motion,
@@ -72,17 +64,13 @@ from rangemcl.localization.place_prior import (
     scan_profile,
     top_beam_deg,
 )
+from rangemcl.localization.recovery import RecoveryMixin
 from rangemcl.localization.refine import ScanRefiner
 from rangemcl.localization.scan_prep import ScanRays
+from rangemcl.localization.search import SearchMixin
 from rangemcl.localization.spread import DrivableArea, uniform_particles
-from rangemcl.se2 import odometry_increment, rotation_roll_pitch, se2_compose, se2_inverse, wrap_angle
-
-# the search's polish of its heaviest hypotheses (MonteCarloLocalizer._polish_hypotheses): a coarse grid
-# (half width and step in metres along and across the seed's heading, then in degrees of yaw) and a fine
-# one around the coarse grid's best pose
-POLISH_COARSE = (2.0, 0.5, 8.0, 2.0)
-POLISH_FINE = (0.4, 0.2, 1.5, 0.5)
-POLISH_COARSE_RAYS_EVERY = 3  # the coarse grid is scored on every third ray
+from rangemcl.localization.tracking import Tracking
+from rangemcl.se2 import odometry_increment, rotation_roll_pitch, se2_compose, wrap_angle
 
 
 def _prior_nbytes(area: DrivableArea, params: PriorParams) -> int:
@@ -125,8 +113,11 @@ class StepInfo:
     map_load_ms: float = math.nan  # ... milliseconds this update waited for tiles to load
 
 
-class MonteCarloLocalizer:
-    """Particle filter over ``(x, y, yaw)`` in a map (module docstring).
+class MonteCarloLocalizer(SearchMixin, RecoveryMixin):
+    """Particle filter over ``(x, y, yaw)`` in a map (module docstring): the search
+    (:class:`~rangemcl.localization.search.SearchMixin`) and the lost watch
+    (:class:`~rangemcl.localization.recovery.RecoveryMixin`) are mixed in, the converged tracking is
+    composed (:attr:`tracking`: :class:`~rangemcl.localization.tracking.Tracking`).
 
     Args:
         mesh_map: the map (its ground grid gives each particle's height; its tiles the paper's rule).
@@ -227,13 +218,20 @@ class MonteCarloLocalizer:
         self.noise = noise
         self.lost = lost
         self.rng = rng
-        self.refiner = refiner
-        self.calibrator = calibrator
-        self.refine_gate = (float(refine_gate_m), math.radians(refine_gate_deg))
-        self.refine_all_heights_updates = int(refine_all_heights_updates)
+        # the converged filter's refinement, odometry calibration and resampling
+        self.tracking = Tracking(
+            refiner=refiner,
+            calibrator=calibrator,
+            refine_gate_m=refine_gate_m,
+            refine_gate_deg=refine_gate_deg,
+            refine_all_heights_updates=refine_all_heights_updates,
+            calibration_settle_updates=calibration_settle_updates,
+            sensor_height_m=sensor_height_m,
+            jitter_xy_m=jitter_xy_m,
+            jitter_yaw_deg=jitter_yaw_deg,
+        )
         self.map_radius_m = float(map_radius_m)  # a map within a budget: tiles this near the particles
         self._stepped = False  # a map within a budget loads its first tiles before the first frame
-        self.calibration_settle_updates = int(calibration_settle_updates)
         self.sensor_height_m = float(sensor_height_m)
         self.update_distance_m = float(update_distance_m)
         self.update_angle = math.radians(update_angle_deg)
@@ -245,7 +243,6 @@ class MonteCarloLocalizer:
             [tracking_sigma_xy_m, tracking_sigma_xy_m, math.radians(tracking_sigma_yaw_deg)]
         )
         self.resample_neff_ratio = float(resample_neff_ratio)
-        self.jitter = (float(jitter_xy_m), float(jitter_yaw_deg))
         self.global_jitter = (float(global_jitter_xy_m), float(global_jitter_yaw_deg))
         self.estimate_best_share = float(estimate_best_share)
         self.uniform_yaw_share = float(uniform_yaw_share)
@@ -306,21 +303,28 @@ class MonteCarloLocalizer:
         if keep:
             self._recent = deque(maxlen=lost.history_updates + 1 + lost.max_vetoed_updates)
         self.hypotheses: list = []  # the search's clusters at the last update, largest share first
-        self.refinements = 0  # refinements taken ...
-        self.refused_refinements = 0  # ... and refused (outside the cloud's spread)
-        self._calib_ref: np.ndarray | None = None  # estimate at the last converged update
-        self._settled = 0  # updates since the last convergence (or tracking start)
-        self._since_search = -1  # updates since the search declared convergence (-1: tracking start)
-        self._raw_since_ref = np.zeros(3)  # raw odometry since then (in that pose) ...
-        self._dt_since_ref = 0.0  # ... and the time it took (NaN: a frame without a time)
-        self._dt_pending = 0.0  # seconds of the odometry not yet applied to the particles
+
+    # --- the tracking's state, as the filter's (read by the run's summary and the tools) ------------------
 
     @property
-    def vetoed_alarms(self) -> int:
-        """Lost suspicions that the second opinion vetoed (episodes)."""
-        return self.lost.vetoed_alarms if self.lost is not None else 0
+    def refiner(self) -> ScanRefiner | None:
+        return self.tracking.refiner
 
-    # --- initialisation ---------------------------------------------------------------------------------
+    @property
+    def calibrator(self) -> OdometryCalibrator | ParticleCalibration | None:
+        return self.tracking.calibrator
+
+    @property
+    def refinements(self) -> int:
+        """Refinements taken ..."""
+        return self.tracking.refinements
+
+    @property
+    def refused_refinements(self) -> int:
+        """... and refused (outside the cloud's spread)."""
+        return self.tracking.refused_refinements
+
+    # --- the place priors (the search draws from them, the second opinion asks them) ----------------------
 
     def place_prior(self) -> PlacePrior:
         """The map's place prior (loaded from the map folder, else rendered once and stored there)."""
@@ -391,6 +395,8 @@ class MonteCarloLocalizer:
         if self.map.budgeted:
             self.map.reserve(what, nbytes)
 
+    # --- initialisation ---------------------------------------------------------------------------------
+
     def spread(self, n: int | None = None) -> None:
         """Global localization: ``n`` particles uniform over the drivable area; yaw along the mapping
         drive (either way) where the map keeps it, with a share of uniform yaw, else uniform. With the
@@ -409,31 +415,12 @@ class MonteCarloLocalizer:
             )
         )
         self.converged = False
-        if self._state_calibration():
-            self.calibrator.stop()
+        self.tracking.stop()
         self._prior_pending = self.use_prior
         if self._prior_pending:
             self.place_prior()
         self.convergence_test.reset()
         self._preload()
-
-    def _from_prior(self, n: int, levelled_points: np.ndarray, top: int | None = None) -> np.ndarray | None:
-        """``n`` particles around the prior's ``top`` best places for this scan (default ``prior_top``,
-        at most 2 % of the map's cells); None when the scan has too few points in the prior's height band
-        to compare."""
-        prior = self.prior_for(levelled_points)
-        top = min(top or self.prior_top, max(20, len(prior.xy) // 50))
-        xy, yaw, _cost, known = prior.candidates(
-            levelled_points, self.sensor_height_m, top, self._elevations(prior, levelled_points)
-        )
-        if known < max(8, prior.params.bins // 20) or n <= 0:
-            return None
-        k = self.rng.integers(0, len(xy), n)
-        half = 0.5 * prior.params.cell_m
-        out = np.empty((n, 3))
-        out[:, :2] = xy[k] + self.rng.uniform(-half, half, (n, 2))
-        out[:, 2] = wrap_angle(yaw[k] + self.rng.normal(0.0, self.prior_yaw_sigma, n))
-        return out
 
     def start_at(self, pose_xyyaw, n: int | None = None, *, settle: bool = False) -> None:
         """Pose tracking: ``n`` particles around a known start pose. ``settle``: the pose is only
@@ -452,8 +439,7 @@ class MonteCarloLocalizer:
         parts = x0 + self.rng.normal(0.0, 1.0, (n, 3)) * self.tracking_sigma
         parts[:, 2] = wrap_angle(parts[:, 2])
         self._set_particles(parts)
-        self._converge(search=False)
-        self._since_search = 0 if settle else -1
+        self._converge(search=False, settle=settle)
         self._prior_pending = False
         self.last_estimate = x0.copy()
         self._check_budget(search=False)
@@ -488,10 +474,17 @@ class MonteCarloLocalizer:
         if self.lost is not None:
             self.lost.reset()
         self._leader = None
-        self._calib_ref = None
-        self._raw_since_ref = np.zeros(3)
-        self._dt_since_ref = 0.0
+        self.tracking.new_interval()
         self.last_estimate = pose_estimate(self.particles, self.weights, self.estimate_best_share)
+
+    def _converge(self, search: bool, settle: bool) -> None:
+        """The cloud has converged: a search's decision, or a tracking start when ``search`` is False. The
+        tracking starts (``settle``: its first updates refine with every hit); after a search, the lost
+        watch's probation."""
+        self.converged = True
+        self.tracking.start(len(self.particles), self.rng, settle=settle)
+        if search:
+            self._start_probation()
 
     @property
     def weights(self) -> np.ndarray:
@@ -522,72 +515,20 @@ class MonteCarloLocalizer:
         delta = np.asarray(odometry_delta, np.float64).reshape(3)
         if not np.isfinite(delta).all():
             raise InputError(f"odometry increment must be finite, got {delta}")
-        self._raw_since_ref = se2_compose(self._raw_since_ref, delta)
-        self._dt_since_ref += dt_s if dt_s is not None else math.nan
-        self._dt_pending += dt_s if dt_s is not None else math.nan
-        if self.calibrator is not None:
-            delta = self.calibrator.correct(delta, dt_s)
+        delta = self.tracking.odometry(delta, dt_s)  # calibrated (the raw increment kept to calibrate)
         self.pending = se2_compose(self.pending, delta)
-        due = (
-            math.hypot(self.pending[0], self.pending[1]) >= self.update_distance_m
-            or abs(self.pending[2]) >= self.update_angle
-        )
         info = dict(
             updated=False, resampled=False, skipped_scan=False, best_residual_m=math.nan, recovered=False
         )
-        if due:
-            rays = None
-            if points is not None and len(points):
-                rays = self.select_rays(
-                    points,
-                    self.rng,
-                    fire_time_s=fire_time_s,
-                    frame_period_s=frame_period_s,
-                    frame_motion=delta,
-                    roll_pitch=roll_pitch,
-                    sensor_height_m=self.sensor_height_m,
-                )
+        if self._update_due():
+            rays = self._select_rays(points, delta, fire_time_s, frame_period_s, roll_pitch)
             self._move()
-            if self._recent is not None:
-                self._recent.append((rays, self._motion.copy()))
+            self._remember(rays)  # for the second opinion's look at the past
             if rays is None:
                 info["skipped_scan"] = True
             else:
-
-                def level() -> np.ndarray:
-                    out = np.asarray(points, np.float64).reshape(-1, 3)
-                    if self.use_beam_prior and self.use_prior:  # the beam prior picks its ring unlevelled
-                        self._scan_raw = out
-                    if roll_pitch is not None and self.level_with_imu:
-                        out = out @ rotation_roll_pitch(*roll_pitch).T
-                    return out
-
-                levelled = level() if self._needs_prior() else None
-                if self._prior_pending and levelled is not None:
-                    self._draw_initial_prior(levelled)
-                self._stepped = True
-                if self.map.budgeted:  # a map within a memory budget (rangemcl.maps.view)
-                    info.update(
-                        self.map.update(self.particles[:, :2], self.map_radius_m, wait=not self.converged)
-                    )
-                info.update(self._weigh(rays, levelled, level))
-                if self.converged and self._state_calibration():
-                    self.calibrator.weighted(self.weights)
-                if (
-                    self.converged
-                    and self.refiner is not None
-                    and not info["recovered"]
-                    and not (self.lost is not None and self.lost.doubtful)
-                ):
-                    info.update(self._refine(rays))
-                if self.converged and self._since_search >= 0:
-                    self._since_search += 1
-                self._calibrate(info)
-        if self.calibrator is not None:
-            info.update(
-                odometry_scale=self.calibrator.scale,
-                gyro_bias_deg_s=math.degrees(self.calibrator.gyro_bias),
-            )
+                info.update(self._update(rays, points, roll_pitch))
+        info.update(self.tracking.readings())
         w = self.weights
         return StepInfo(
             estimate=self.estimate(),
@@ -598,92 +539,84 @@ class MonteCarloLocalizer:
             **info,
         )
 
-    def _refine(self, rays: ScanRays) -> dict:
-        """Align the update's rays to the mesh from the estimate (:mod:`rangemcl.localization.refine`);
-        take the correction (the whole cloud moves by it) when it lies within the cloud's own spread."""
-        est = self.last_estimate
-        sensor_z = float(self.sensor_z(est[None, :2])[0])
-        # just after a search declared convergence the cloud's place along a street may still be off by
-        # decimetres that the facades do not constrain: the lowest metres (kerbs, parked cars) take part
-        all_heights = 0 <= self._since_search < self.refine_all_heights_updates
-        ref = self.refiner.refine(
-            rays.directions,
-            rays.ranges,
-            est,
-            sensor_z,
-            ground_z=None if all_heights else sensor_z - self.sensor_height_m,
+    def _update_due(self) -> bool:
+        """The car has moved ``update_distance_m`` or turned ``update_angle_deg`` since the last update."""
+        return (
+            math.hypot(self.pending[0], self.pending[1]) >= self.update_distance_m
+            or abs(self.pending[2]) >= self.update_angle
         )
-        if ref is None:
-            return {}
-        w = self.weights
-        spread_xy = math.sqrt(
-            float(np.sum(w * ((self.particles[:, 0] - est[0]) ** 2 + (self.particles[:, 1] - est[1]) ** 2)))
+
+    def _select_rays(self, points, frame_motion, fire_time_s, frame_period_s, roll_pitch) -> ScanRays | None:
+        """The scan's rays for this update (None: no scan, or no valid point in it)."""
+        if points is None or not len(points):
+            return None
+        return self.select_rays(
+            points,
+            self.rng,
+            fire_time_s=fire_time_s,
+            frame_period_s=frame_period_s,
+            frame_motion=frame_motion,
+            roll_pitch=roll_pitch,
+            sensor_height_m=self.sensor_height_m,
         )
-        spread_yaw = math.sqrt(float(np.sum(w * wrap_angle(self.particles[:, 2] - est[2]) ** 2)))
-        shift = math.hypot(ref.correction[0], ref.correction[1])
-        if (
-            shift > self.refine_gate[0] + 2.0 * spread_xy
-            or abs(ref.correction[2]) > self.refine_gate[1] + 2.0 * spread_yaw
-        ):
-            self.refused_refinements += 1
-            return dict(refined=-1, refine_shift_m=shift)
-        self.particles = self.particles + ref.correction
-        self.particles[:, 2] = wrap_angle(self.particles[:, 2])
-        self.last_estimate = ref.pose.copy()
-        self.refinements += 1
-        return dict(refined=1, refine_shift_m=shift)
 
-    def _calibrate(self, info: dict) -> None:
-        """After a weighted update: the interval since the last converged update feeds the odometry's
-        calibration (:mod:`rangemcl.localization.calibration`); a search, a recovery or a convergence
-        starts a new interval instead, and the first ``calibration_settle_updates`` after a convergence
-        (while the cloud settles on its place) are left out."""
-        if self.calibrator is None:
-            return
-        steady = self.converged and not info.get("recovered") and not info.get("converged_now")
-        self._settled = self._settled + 1 if steady else 0
-        if steady and self._calib_ref is not None and self._settled > self.calibration_settle_updates:
-            dt = self._dt_since_ref if math.isfinite(self._dt_since_ref) else None
-            self.calibrator.observe(self._raw_since_ref, dt, self._calib_ref, self.last_estimate)
-        self._calib_ref = self.last_estimate.copy() if self.converged and not info.get("recovered") else None
-        self._raw_since_ref = np.zeros(3)
-        self._dt_since_ref = 0.0
+    def _update(self, rays: ScanRays, points: np.ndarray, roll_pitch) -> dict:
+        """An update with a scan (the particles have moved): the search's first draw from the place prior,
+        the map's tiles near the particles (a map within a budget), the weighing (with the search's update
+        or the lost watch), then a converged filter's tracking and the calibration's interval. Returns
+        :class:`StepInfo` fields."""
+        level = self._leveller(points, roll_pitch)
+        levelled = level() if self._needs_prior() else None
+        if self._prior_pending and levelled is not None:
+            self._draw_initial_prior(levelled)
+        self._stepped = True
+        info = {}
+        if self.map.budgeted:  # a map within a memory budget (rangemcl.maps.view)
+            info.update(self.map.update(self.particles[:, :2], self.map_radius_m, wait=not self.converged))
+        info.update(self._weigh(rays, levelled, level))
+        if self.converged:
+            doubtful = self.lost is not None and self.lost.doubtful
+            self.particles, self.last_estimate, refined = self.tracking.update(
+                rays,
+                self.particles,
+                self.weights,
+                self.last_estimate,
+                self.sensor_z,
+                refine=not info["recovered"] and not doubtful,
+            )
+            info.update(refined)
+        self.tracking.calibrate(
+            self.converged, bool(info.get("recovered")), bool(info.get("converged_now")), self.last_estimate
+        )
+        return info
 
-    def _needs_prior(self) -> bool:
-        return self.use_prior and not self.converged
+    def _leveller(self, points: np.ndarray, roll_pitch) -> Callable[[], np.ndarray]:
+        """``level()``: the scan's points levelled with the IMU's roll and pitch (where that is on), made
+        when the place prior is asked (the search's draws, the second opinion)."""
 
-    def _draw_initial_prior(self, levelled: np.ndarray) -> None:
-        n = len(self.particles)
-        k = int(round(self.prior_share * n))
-        drawn = self._from_prior(k, levelled)
-        if drawn is None:
-            return  # too little in the scan to compare: stay uniform, try again at the next update
-        self.particles[self.rng.choice(n, k, replace=False)] = drawn
-        self.log_w = np.zeros(n)
-        self._prior_pending = False
+        def level() -> np.ndarray:
+            out = np.asarray(points, np.float64).reshape(-1, 3)
+            if self.use_beam_prior and self.use_prior:  # the beam prior picks its ring unlevelled
+                self._scan_raw = out
+            if roll_pitch is not None and self.level_with_imu:
+                out = out @ rotation_roll_pitch(*roll_pitch).T
+            return out
+
+        return level
 
     def _move(self) -> None:
         increment = odometry_increment(np.zeros(3), self.pending)
         self._moved_m = float(math.hypot(self.pending[0], self.pending[1]))
-        if self._state_calibration() and self.calibrator.state is not None:
-            increment = self.calibrator.increments(increment, self._dt_pending, self._moved_m, self.rng)
-        self._dt_pending = 0.0
+        increment = self.tracking.increments(increment, self._moved_m, self.rng)
         self._motion = self.pending.copy()  # this update's odometry, in the previous update's pose
         self.particles = sample_motion(self.particles, increment, self.noise, self.rng)
         self.last_estimate = se2_compose(self.last_estimate, self.pending)
         self.pending = np.zeros(3)
 
-    def sensor_z(self, xy: np.ndarray) -> np.ndarray:
-        """The sensor's world z over each ``(x, y)``: the map's ground there plus the mounting height."""
-        return self.map.ground.height_at(xy[:, 0], xy[:, 1]) + self.sensor_height_m
-
-    def residuals(self, rays: ScanRays, particles: np.ndarray | None = None) -> np.ndarray:
-        """Mean residual ``d`` of Eq. 5 of each particle (default: the filter's) for these rays."""
-        p = self.particles if particles is None else np.asarray(particles, np.float64)
-        self.model.set_scan(rays.directions, rays.ranges)
-        return self.model.mean_residuals(p, self.sensor_z(p[:, :2])).astype(np.float64)
-
     def _weigh(self, rays: ScanRays, levelled: np.ndarray | None = None, level=None) -> dict:
+        """Weigh the cloud with the scan (while searching, its heaviest hypotheses polished first) and
+        estimate; then a converged filter's lost watch (lost: spread again, and nothing more), and the
+        search's update or the tracking's resampling. Returns :class:`StepInfo` fields."""
         loglik, bad = self.scorer.score(rays, self.particles, self.sensor_z(self.particles[:, :2]))
         self.log_w = self.log_w + loglik
         if not self.converged and self.convergence == "hypotheses" and self.polish_hypotheses > 0:
@@ -702,326 +635,26 @@ class MonteCarloLocalizer:
         w = self.weights
         self.last_estimate = pose_estimate(self.particles, w, self.estimate_best_share)
         if self.converged and self.lost is not None:
-            opinion = (
-                (lambda rival, gain: self._second_opinion(rays, level(), rival, gain))
-                if self.use_prior and level is not None
-                else None
-            )
-            lost, out["vetoed"] = self.lost.update(best, inliers, opinion, self._motion)
-            if lost:
-                self.recoveries += 1
-                self.spread(max(self._spread_count, self.global_count))
-                out["recovered"] = True
+            out.update(self._watch(rays, level, best, inliers))
+            if out["recovered"]:
                 return out
         n = len(self.particles)
         if not self.converged:
-            if self.convergence == "hypotheses":
-                out.update(self._search_update(w, levelled))
-            elif self._tiles_converged():
-                self._resample(w, min(self.converged_count, n))
-                self._converge(search=True)
-                out.update(resampled=True, converged_now=True)
-            elif effective_sample_size(w) < self.resample_neff_ratio * n:
-                self._resample(w, n)
-                out["resampled"] = True
+            out.update(self._search_update(w, levelled))
         elif effective_sample_size(w) < self.resample_neff_ratio * n:
-            self._resample(w, n)
+            self.particles = self.tracking.resample(self.particles, w, self.rng, n)
+            self.log_w = np.zeros(n)
             out["resampled"] = True
         if self.converged:
             self.converged_updates += 1
         return out
 
-    def _grid_search(self, rays: ScanRays, seeds: np.ndarray, grid: tuple[float, float, float, float]):
-        """Each seed ``(x, y, yaw)`` scored over a grid of poses in its own frame (forward, left, yaw):
-        ``grid`` = ``(half_m, step_m, half_deg, step_deg)``. Returns the poses ``(K, G, 3)``, their
-        log-likelihoods, badness and inlier shares ``(K, G)`` (inliers None for models without them)."""
-        half_m, step_m, half_deg, step_deg = grid
-        ax = np.arange(-half_m, half_m + 1e-9, step_m)
-        ay = np.radians(np.arange(-half_deg, half_deg + 1e-9, step_deg))
-        g = np.array(np.meshgrid(ax, ax, ay, indexing="ij")).reshape(3, -1).T
-        c, s = np.cos(seeds[:, 2])[:, None], np.sin(seeds[:, 2])[:, None]
-        p = np.empty((len(seeds), len(g), 3))
-        p[:, :, 0] = seeds[:, None, 0] + c * g[None, :, 0] - s * g[None, :, 1]
-        p[:, :, 1] = seeds[:, None, 1] + s * g[None, :, 0] + c * g[None, :, 1]
-        p[:, :, 2] = wrap_angle(seeds[:, None, 2] + g[None, :, 2])
-        flat = p.reshape(-1, 3)
-        ll, bad = self.scorer.score(rays, flat, self.sensor_z(flat[:, :2]))
-        inl = self.scorer.last_inliers
-        shape = (len(seeds), len(g))
-        return p, ll.reshape(shape), bad.reshape(shape), None if inl is None else inl.reshape(shape)
+    def sensor_z(self, xy: np.ndarray) -> np.ndarray:
+        """The sensor's world z over each ``(x, y)``: the map's ground there plus the mounting height."""
+        return self.map.ground.height_at(xy[:, 0], xy[:, 1]) + self.sensor_height_m
 
-    def _grid_look(self, rays: ScanRays, seeds: np.ndarray):
-        """The second opinion's look around its best places: each seed's coarse grid
-        (:data:`POLISH_COARSE`, every third ray), then the fine grid (:data:`POLISH_FINE`) around its most
-        likely pose; returns the fine grids' poses ``(M, 3)``, badness and inlier shares ``(M,)`` (the
-        search's polish, :meth:`_polish_hypotheses`, on the opinion's rays)."""
-        seeds = np.asarray(seeds, np.float64).reshape(-1, 3)
-        coarse_rays = rays.subset(slice(None, None, POLISH_COARSE_RAYS_EVERY))
-        p, ll, _b, _i = self._grid_search(coarse_rays, seeds, POLISH_COARSE)
-        best = p[np.arange(len(seeds)), np.argmax(ll, axis=1)]
-        p, _ll, bad, inl = self._grid_search(rays, best, POLISH_FINE)
-        return p.reshape(-1, 3), bad.reshape(-1), None if inl is None else inl.reshape(-1)
-
-    def _polish_hypotheses(
-        self, rays: ScanRays, loglik: np.ndarray, bad: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """While searching, the ``polish_hypotheses`` heaviest hypotheses (a cluster's particles within one
-        30° sector of yaw) are searched around their best particle on this scan: a coarse grid
-        (:data:`POLISH_COARSE`, scored on every third ray) and a fine one around its best pose
-        (:data:`POLISH_FINE`, all rays); the fine grid's ``polish_keep`` best poses join the cloud. The range
-        likelihood is sharp (a pose 0.2 m to the side, or a degree off, can lose about half a nat per update;
-        ``tools/likelihood_peak.py`` measures it on a drive) and a hypothesis holds a few dozen particles over
-        metres and degrees, so without this the true place is judged by particles off its peak, which can fit
-        worse than a look-alike street's best particles for many updates. The coarse grid on a third of the
-        rays keeps the cost of finding the peak's neighbourhood low; the fine grid on all rays places it. The
-        seed's weight before this scan is shared among itself and the new poses, each then taking its own
-        likelihood. Returns ``loglik`` and ``bad`` extended to the new poses (the clusters are found again by
-        the search update: the new poses can join neighbouring ones)."""
-        labels, _count = cluster_labels(self.particles[:, :2], self.cluster_m)
-        sectors = 12
-        sector = np.floor((self.particles[:, 2] + math.pi) / (2 * math.pi) * sectors).astype(np.int64)
-        labels = labels * sectors + sector.clip(0, sectors - 1)
-        lw = self.log_w
-        mass = np.bincount(labels, weights=np.exp(lw - lw.max()))
-        top = np.argsort(-mass, kind="stable")[: self.polish_hypotheses]
-        top = top[mass[top] > 0]
-        if len(top) == 0:
-            return loglik, bad
-        order = np.lexsort((-lw, labels))  # by hypothesis, its heaviest particle first
-        seeds_idx = order[np.searchsorted(labels[order], top)]
-        k = len(seeds_idx)
-        inl0 = self.scorer.last_inliers
-        coarse_rays = rays.subset(slice(None, None, POLISH_COARSE_RAYS_EVERY))  # a third: the cost
-        p, ll, _b, _i = self._grid_search(coarse_rays, self.particles[seeds_idx], POLISH_COARSE)
-        coarse_best = p[np.arange(k), np.argmax(ll, axis=1)]
-        p, ll, b, inl = self._grid_search(rays, coarse_best, POLISH_FINE)
-        keep = min(self.polish_keep, ll.shape[1])
-        pick = np.argsort(-ll, axis=1, kind="stable")[:, :keep]
-        rows = np.arange(k)[:, None]
-        new, ll_new, bad_new = (
-            p[rows, pick].reshape(-1, 3),
-            ll[rows, pick].reshape(-1),
-            b[rows, pick].reshape(-1),
-        )
-        origin = np.repeat(seeds_idx, keep)  # each new pose's seed
-        split = math.log(keep + 1)
-        lw = lw.copy()
-        before = lw[origin] - loglik[origin]
-        lw[seeds_idx] -= split
-        n0 = len(self.particles)
-        self.log_w = np.concatenate([lw, before - split + ll_new])
-        self.particles = np.vstack([self.particles, new])
-        if self._leader is not None and len(self._leader) == n0:
-            self._leader = np.concatenate([self._leader, self._leader[origin]])
-        if inl0 is not None and inl is not None:
-            self.scorer.last_inliers = np.concatenate([inl0, inl[rows, pick].reshape(-1)])
-        else:
-            self.scorer.last_inliers = None
-        return np.concatenate([loglik, ll_new]), np.concatenate([bad, bad_new])
-
-    def _start_probation(self) -> None:
-        if self.lost is not None:
-            self.lost.start_probation()
-
-    def _search_update(self, w: np.ndarray, levelled: np.ndarray | None) -> dict:
-        """One update of the hypothesis search (:mod:`rangemcl.localization.hypotheses`): cluster,
-        test for a winner, else resample cluster by cluster to the KLD size and inject prior particles."""
-        labels, count = cluster_labels(self.particles[:, :2], self.cluster_m)
-        hyps = summarize(self.particles, w, labels, count)
-        self.hypotheses = hyps
-        best = hyps[0]
-        same = False
-        if self._leader is not None and len(self._leader) == len(labels):
-            same = bool(self._leader[labels == best.label].mean() >= 0.5)
-        won = self.convergence_test.update(hyps, same, self._moved_m)
-        inl = self.scorer.last_inliers
-        if won and inl is not None and len(inl) == len(labels):
-            # the winner must also fit: a place that merely fits less badly than the rest has not won
-            won = float(inl[labels == best.label].max()) >= self.min_inliers
-        margin = self.convergence_test.margin
-        out = dict(resampled=True, hypotheses=len(hyps), evidence_nats=margin)
-        self.last_estimate = best.centroid.copy()  # while searching, the leading hypothesis
-        if won:
-            inside = np.flatnonzero(labels == best.label)
-            wi = w[inside] / w[inside].sum()
-            self.particles = self.particles[inside]
-            self._resample(wi, self.converged_count)
-            self._converge(search=True)
-            self._leader = None
-            self.last_estimate = pose_estimate(self.particles, self.weights, self.estimate_best_share)
-            out["converged_now"] = True
-            return out
-        keep = [h for h in hyps if h.log_share >= best.log_share - self.prune_nats][: self.max_clusters]
-        provisional = self.particles[low_variance_resample(w, self.rng, len(w))]
-        size = kld_sample_size(occupied_bins(provisional, *self.kld_bin), self.kld_epsilon)
-        size = int(
-            np.clip(size, self.min_search_particles, max(self._spread_count, self.min_search_particles))
-        )
-        parts, logw, origin = resample_by_cluster(
-            self.particles, w, labels, keep, size, self.min_cluster_particles, self.rng
-        )
-        n = len(parts)
-        sxy, syaw = self.global_jitter[0], math.radians(self.global_jitter[1])
-        parts[:, :2] += self.rng.normal(0.0, sxy, (n, 2))
-        parts[:, 2] = wrap_angle(parts[:, 2] + self.rng.normal(0.0, syaw, n))
-        leader = origin == 0
-        if (
-            self.use_prior
-            and levelled is not None
-            and best.share <= self.inject_below_share
-            and self.inject_share > 0
-        ):
-            k = max(1, int(round(self.inject_share * n)))
-            fresh = self._from_prior(k, levelled, self.inject_top)
-            if fresh is not None and len(fresh):
-                share = min(self.inject_share * len(fresh) / k, 1.0 - 1e-12)
-                parts = np.vstack([parts, fresh])
-                each = math.log(max(self.inject_share, 1e-300) / k)
-                logw = np.concatenate([logw + math.log1p(-share), np.full(len(fresh), each)])
-                leader = np.concatenate([leader, np.zeros(len(fresh), bool)])
-        self.particles, self.log_w, self._leader = parts, logw, leader
-        return out
-
-    def _state_calibration(self) -> bool:
-        return isinstance(self.calibrator, ParticleCalibration)
-
-    def _converge(self, search: bool) -> None:
-        """The cloud has converged (a search's decision, or a tracking start when ``search`` is False)."""
-        self.converged = True
-        if search:
-            self._since_search = 0
-            self._start_probation()
-        if self._state_calibration():
-            self.calibrator.start(len(self.particles), self.rng)
-
-    def _resample(self, w: np.ndarray, n: int) -> None:
-        idx = low_variance_resample(w, self.rng, n)
-        if self.converged and self._state_calibration():
-            self.calibrator.resampled(idx)
-        parts = self.particles[idx].copy()
-        sxy, syaw = self.jitter if self.converged else self.global_jitter
-        if sxy > 0 or syaw > 0:
-            parts[:, :2] += self.rng.normal(0.0, sxy, (n, 2))
-            parts[:, 2] = wrap_angle(parts[:, 2] + self.rng.normal(0.0, math.radians(syaw), n))
-        self.particles = parts
-        self.log_w = np.zeros(n)
-
-    def _tiles_converged(self) -> bool:
-        """The paper's rule: all particles in ``tiles`` tiles (and 95 % within ``max_radius_m``), or a
-        cloud this compact (``compact_radius_m``) across a tile border."""
-        est = self.last_estimate
-        dist = np.hypot(self.particles[:, 0] - est[0], self.particles[:, 1] - est[1])
-        r95 = float(np.quantile(dist, 0.95))
-        if r95 <= self.compact_radius_m:
-            return True
-        tiles = np.unique(self.map.tile_at(self.particles[:, 0], self.particles[:, 1]))
-        return len(tiles) <= self.tiles and r95 <= self.max_radius_m
-
-    def _second_opinion(
-        self, rays: ScanRays, levelled: np.ndarray, rival: np.ndarray | None, inlier_gain: float
-    ) -> Opinion | None:
-        """:func:`rangemcl.localization.lost.second_opinion` on the prior's best places for this scan,
-        with the rays measured at least ``opinion_min_range_m`` away (near objects, vehicles alongside
-        above all, fit any wall); the filter's own cloud is scored on the same rays. ``None`` when the
-        scan has too little in the prior's height band, or too few far rays, to compare. ``rival``: a
-        place scored with them (the last better place moved with the odometry, or None); ``inlier_gain``:
-        what a better place must gain (:class:`rangemcl.localization.lost.LostDetector`). Over a map
-        within a budget (:meth:`rangemcl.maps.view.MapView.consult`) the places whose tiles are not
-        held yet are asked for and left out of this opinion."""
-        lost = self.lost
-        sub = self._far_rays(rays)
-        if sub is None:
-            return None
-        prior = self.prior_for(levelled)
-        xy, yaw, _cost, known = prior.candidates(
-            levelled, self.sensor_height_m, lost.opinion_top, self._elevations(prior, levelled)
-        )
-        if known < max(8, prior.params.bins // 20):
-            return None
-        consult = getattr(self.map, "consult", None)  # a map within a budget: only the places held
-        if consult is not None:
-            far_away = np.hypot(xy[:, 0] - self.last_estimate[0], xy[:, 1] - self.last_estimate[1])
-            keep = far_away > self.separation_m - 0.5 * prior.params.cell_m
-            xy, yaw = xy[keep], yaw[keep]
-            held = consult(xy)
-            xy, yaw = xy[held], yaw[held]
-            if len(xy) == 0:  # none scoreable yet (their tiles are loading): no better place found
-                return Opinion(False, self.last_estimate.copy(), math.inf, math.nan, 0)
-        cand = candidate_particles(
-            xy, yaw, lost.opinion_per_place, prior.params.cell_m, self.prior_yaw_sigma, self.rng
-        )
-        polish = Polish(lost.polish_places, lost.polish_per_place, *lost.polish_sigma, self.rng)
-        if rival is not None and polish.places > 0:  # the last better place, moved with the odometry
-            cand = np.vstack([cand, rival[None], polish.around(rival[None])])
-
-        def score(p: np.ndarray):
-            _loglik, bad = self.scorer.score(sub, p, self.sensor_z(p[:, :2]))
-            return bad, self.scorer.last_inliers
-
-        own_bad, own_inl = score(self.particles)
-        j = int(np.argmin(own_bad))
-        found = second_opinion(
-            score,
-            self.last_estimate,
-            float(own_bad[j]),
-            float(own_inl[j]) if own_inl is not None else math.nan,
-            cand,
-            min_distance_m=self.separation_m,
-            inlier_gain=inlier_gain,
-            polish=polish,
-            badness_ratio=lost.opinion_badness_ratio,
-            saturated_ratio=lost.saturated_badness_ratio,
-            look=lambda seeds: self._grid_look(sub, seeds),
-            rival=rival,
-            rival_m=lost.consistent_m,
-        )
-        if (
-            found.better
-            and self._recent is not None
-            and own_inl is not None
-            and float(own_inl[j]) >= lost.history_min_inliers
-        ):
-            own = self.particles[j].copy()
-            rival_fit = history_fit(self._history_inliers, found.pose, polish)
-            own_fit = history_fit(self._history_inliers, own, polish)
-            if math.isfinite(rival_fit) and rival_fit < own_fit - lost.history_margin:
-                found.better = False  # (NaN own_fit: the comparison is False, the place stays better)
-        return found
-
-    def _history_inliers(self, poses: np.ndarray) -> np.ndarray:
-        """Each pose's ``(M, 3)`` mean inlier share over the far rays of the previous updates' scans (up to
-        ``history_updates``), the pose moved back along the odometry to each of them; NaN with fewer than
-        half of them to compare (no scan, too few far rays). The watch's current run of bad updates is
-        left out: as many scans as it counts (the current update included), those of its updates and the
-        one just before them, so the past is the one before the suspicion (a vehicle alongside that hides
-        the far rays at the true pose for a while would otherwise let a distant place fit that past nearly
-        as well)."""
-        p = np.asarray(poses, np.float64).reshape(-1, 3)
-        total = np.zeros(len(p))
-        count = 0
-        entries = list(self._recent)
-        skip = self.lost.watch.bad_updates
-        for i in range(len(entries) - 1, 0, -1):
-            p = se2_compose(p, se2_inverse(entries[i][1]))  # the pose at the update before
-            back = len(entries) - 1 - i  # updates before this one
-            if back >= skip + self.lost.history_updates:
-                break
-            if back < skip:
-                continue  # a scan of the current suspicion
-            sub = None if entries[i - 1][0] is None else self._far_rays(entries[i - 1][0])
-            if sub is None:
-                continue
-            self.scorer.score(sub, p, self.sensor_z(p[:, :2]))
-            total += self.scorer.last_inliers  # (asked only of models with an inlier share)
-            count += 1
-        if count == 0 or count < 0.5 * self.lost.history_updates:
-            return np.full(len(p), math.nan)
-        return total / count
-
-    def _far_rays(self, rays: ScanRays) -> ScanRays | None:
-        """The rays measured at least ``opinion_min_range_m`` away (what the second opinion compares), or
-        None when they are too few (under 20, or under a tenth of the rays)."""
-        far = rays.ranges >= self.lost.opinion_min_range_m
-        if far.sum() < max(20, 0.1 * len(far)):
-            return None
-        return rays.subset(far)
+    def residuals(self, rays: ScanRays, particles: np.ndarray | None = None) -> np.ndarray:
+        """Mean residual ``d`` of Eq. 5 of each particle (default: the filter's) for these rays."""
+        p = self.particles if particles is None else np.asarray(particles, np.float64)
+        self.model.set_scan(rays.directions, rays.ranges)
+        return self.model.mean_residuals(p, self.sensor_z(p[:, :2])).astype(np.float64)

@@ -58,7 +58,7 @@ Two more rules decide what counts as better:
   is taken in the probation after a convergence too: the search chose its place from those same past
   scans, so the past can favour a wrong convergence, but without the look a correct convergence can be
   called lost by a look-alike soon after. And it leaves out the scans of the current suspicion (its bad
-  updates and the one before them; ``MonteCarloLocalizer._history_inliers``): a vehicle alongside that
+  updates and the one before them; ``RecoveryMixin._history_inliers``): a vehicle alongside that
   hides the far rays at the true pose for a while would otherwise let a distant place fit that past
   nearly as well.
 """
@@ -241,7 +241,7 @@ def second_opinion(
     scan clearly better than the filter's best particle: its inlier share higher by ``inlier_gain`` and
     its badness lower (models with an inlier share), or its badness below ``badness_ratio`` x the
     filter's (models without). With ``look``, a callable ``look(seeds (K, 3)) -> (poses (M, 3), badness
-    (M,), inliers (M,) or None)`` (the filter's grids, ``MonteCarloLocalizer._grid_look``), and
+    (M,), inliers (M,) or None)`` (the filter's grids, ``RecoveryMixin._grid_look``), and
     ``polish``, the best ``polish.places`` distinct places (:meth:`Polish.seeds`) are searched again
     around their best particle before the decision, the look's poses near the estimate left out. With
     ``saturated_ratio``, where the filter's inlier share leaves no room for the gain (``current_inliers +

@@ -1,13 +1,14 @@
 """Particle-filter arithmetic over ``(x, y, yaw)`` particles: the odometry motion model, log-weights,
-low-variance resampling and circular pose estimates. Pure numpy functions; all randomness comes from the
-generator passed in. The pose math they build on (angle wrapping, circular means, odometry increments)
-lives in :mod:`rangemcl.se2` and is re-exported here.
+low-variance resampling (and the roughening after it) and circular pose estimates. Pure numpy functions;
+all randomness comes from the generator passed in. The pose math they build on (angle wrapping, circular
+means, odometry increments) lives in :mod:`rangemcl.se2` and is re-exported here.
 
 Particles are ``(N, 3)`` float64 arrays ``(x, y, yaw)`` with yaw wrapped to (−π, π].
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -77,6 +78,26 @@ def low_variance_resample(weights: np.ndarray, rng: np.random.Generator, n: int 
     cumulative = np.cumsum(w)
     cumulative[-1] = 1.0  # guard against rounding
     return np.searchsorted(cumulative, positions, side="right").clip(0, len(w) - 1)
+
+
+def resample_roughened(
+    particles: np.ndarray,
+    weights: np.ndarray,
+    rng: np.random.Generator,
+    n: int,
+    jitter_xy_m: float,
+    jitter_yaw_deg: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` particles drawn by :func:`low_variance_resample`, then roughened: Gaussian noise of
+    ``jitter_xy_m`` on x and y and of ``jitter_yaw_deg`` on yaw (nothing drawn when both are 0), so that
+    the copies of one particle spread again. Returns the new particles and the index of each one's
+    parent."""
+    idx = low_variance_resample(weights, rng, n)
+    parts = particles[idx].copy()
+    if jitter_xy_m > 0 or jitter_yaw_deg > 0:
+        parts[:, :2] += rng.normal(0.0, jitter_xy_m, (n, 2))
+        parts[:, 2] = wrap_angle(parts[:, 2] + rng.normal(0.0, math.radians(jitter_yaw_deg), n))
+    return parts, idx
 
 
 def pose_estimate(particles: np.ndarray, weights: np.ndarray, best_share: float = 0.8) -> np.ndarray:

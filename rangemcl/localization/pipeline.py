@@ -331,6 +331,7 @@ class LocalizationPipeline:
         """What decides a run's results: a resumed run must have the same."""
         opt = self.opt
         fp = {
+            "rangemcl_version": __version__,  # the checkpoint's layout is the filter's of this version
             "sequence": str(Path(self.seq_dir).resolve()),
             "map": str(Path(self.map_dir).resolve()),
             "settings": asdict(self.settings),
@@ -373,6 +374,12 @@ class LocalizationPipeline:
 
         _tree, extra, _arrays = read_state(path)
         saved = extra.get("fingerprint", {}) if isinstance(extra, dict) else {}
+        if saved.get("rangemcl_version") != __version__:
+            raise InputError(
+                f"{self.out_dir}: its checkpoint was written by rangemcl "
+                f"{saved.get('rangemcl_version') or 'before 0.17.1'}, this is {__version__}: resume it with "
+                "that version, or --overwrite"
+            )
         diff = _differences(saved, self.fingerprint())
         if diff:
             raise InputError(

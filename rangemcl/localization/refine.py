@@ -28,7 +28,7 @@ back only by resampling, so the estimate lags by decimetres. Here the scan itsel
   too).
 
 :class:`ScanRefiner` returns the refined pose with what it rests on; the filter decides whether to take it
-(:class:`rangemcl.localization.filter.MonteCarloLocalizer`: a correction outside the cloud's own spread
+(:meth:`rangemcl.localization.tracking.Tracking.refine`: a correction outside the cloud's own spread
 is refused and counted). Pure numpy on top of the caster; deterministic.
 """
 

@@ -30,6 +30,7 @@ from rangemcl.localization.refine import ScanRefiner
 from rangemcl.localization.scan_prep import select_rays
 from rangemcl.localization.settings import LocalizerSettings
 from rangemcl.localization.spread import drivable_cells, uniform_particles
+from rangemcl.localization.tracking import Tracking
 from rangemcl.maps.meshmap import MeshMap
 
 # per-call inputs of a core (not settings): the only parameters with a default
@@ -43,6 +44,7 @@ NOT_IN_THE_FILTER = {"map_memory_mb"}
     [
         MonteCarloLocalizer,
         ScanRefiner,
+        Tracking,
         LostDetector,
         SignalWatch,
         OdometryCalibrator,

@@ -1,0 +1,272 @@
+"""The global search (:class:`SearchMixin`): what the filter does while it has not found its place.
+
+* **The place prior's draw**: at the first update with a scan to compare, a share of the uniform spread
+  is redrawn around the places whose profile fits the scan (:mod:`rangemcl.localization.place_prior`).
+* **The polish**: the heaviest hypotheses are searched on a coarse and a fine grid of poses around their
+  best particle, so that the true place is judged at the likelihood's peak (the second opinion of
+  :mod:`rangemcl.localization.recovery` looks around its places with the same grids).
+* **The hypothesis search** (:mod:`rangemcl.localization.hypotheses`): the cloud is clustered into
+  hypotheses, the sequential test decides whether the leader has won (and fits), else the cloud is
+  resampled cluster by cluster to the KLD size and particles from the prior are injected; with
+  ``convergence="tiles"``, the paper's rule instead (all particles in ``tiles`` tiles).
+* **Convergence**: the winner's particles are resampled to ``converged_count`` and the filter's
+  convergence (:meth:`MonteCarloLocalizer._converge`) hands over to the tracking.
+
+A mixin of :class:`rangemcl.localization.filter.MonteCarloLocalizer` rather than a part it composes: the
+search rewrites the filter's cloud at every update (poses added by the polish, the cloud resampled cluster
+by cluster, each particle's descent from the leading cluster kept in step with it), draws from the
+filter's place prior and generator, scores with its observation model and ends in the filter's own
+convergence, so its state does not separate from the filter's. What it reads of the filter: the cloud
+(``particles``, ``log_w``, ``weights``, ``last_estimate``), ``scorer``, ``sensor_z``, ``rng``, ``map``,
+``prior_for`` and ``_elevations``, ``_moved_m`` and ``_spread_count``, and the search's settings that the
+constructor stores (convergence, particles and place-prior keys); what it keeps: ``hypotheses``,
+``convergence_test``, ``_leader`` and ``_prior_pending``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from rangemcl.localization.hypotheses import (
+    cluster_labels,
+    kld_sample_size,
+    occupied_bins,
+    resample_by_cluster,
+    summarize,
+)
+from rangemcl.localization.particles import (
+    effective_sample_size,
+    low_variance_resample,
+    pose_estimate,
+    resample_roughened,
+)
+from rangemcl.localization.scan_prep import ScanRays
+from rangemcl.se2 import wrap_angle
+
+# the search's polish of its heaviest hypotheses (SearchMixin._polish_hypotheses): a coarse grid (half
+# width and step in metres along and across the seed's heading, then in degrees of yaw) and a fine one
+# around the coarse grid's best pose
+POLISH_COARSE = (2.0, 0.5, 8.0, 2.0)
+POLISH_FINE = (0.4, 0.2, 1.5, 0.5)
+POLISH_COARSE_RAYS_EVERY = 3  # the coarse grid is scored on every third ray
+
+
+class SearchMixin:
+    """Global localization's search, a mixin of :class:`~rangemcl.localization.filter.MonteCarloLocalizer`
+    (module docstring)."""
+
+    # --- the place prior's draw ---------------------------------------------------------------------------
+
+    def _needs_prior(self) -> bool:
+        return self.use_prior and not self.converged
+
+    def _draw_initial_prior(self, levelled: np.ndarray) -> None:
+        n = len(self.particles)
+        k = int(round(self.prior_share * n))
+        drawn = self._from_prior(k, levelled)
+        if drawn is None:
+            return  # too little in the scan to compare: stay uniform, try again at the next update
+        self.particles[self.rng.choice(n, k, replace=False)] = drawn
+        self.log_w = np.zeros(n)
+        self._prior_pending = False
+
+    def _from_prior(self, n: int, levelled_points: np.ndarray, top: int | None = None) -> np.ndarray | None:
+        """``n`` particles around the prior's ``top`` best places for this scan (default ``prior_top``,
+        at most 2 % of the map's cells); None when the scan has too few points in the prior's height band
+        to compare."""
+        prior = self.prior_for(levelled_points)
+        top = min(top or self.prior_top, max(20, len(prior.xy) // 50))
+        xy, yaw, _cost, known = prior.candidates(
+            levelled_points, self.sensor_height_m, top, self._elevations(prior, levelled_points)
+        )
+        if known < max(8, prior.params.bins // 20) or n <= 0:
+            return None
+        k = self.rng.integers(0, len(xy), n)
+        half = 0.5 * prior.params.cell_m
+        out = np.empty((n, 3))
+        out[:, :2] = xy[k] + self.rng.uniform(-half, half, (n, 2))
+        out[:, 2] = wrap_angle(yaw[k] + self.rng.normal(0.0, self.prior_yaw_sigma, n))
+        return out
+
+    # --- the polish ---------------------------------------------------------------------------------------
+
+    def _polish_hypotheses(
+        self, rays: ScanRays, loglik: np.ndarray, bad: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """While searching, the ``polish_hypotheses`` heaviest hypotheses (a cluster's particles within one
+        30° sector of yaw) are searched around their best particle on this scan: a coarse grid
+        (:data:`POLISH_COARSE`, scored on every third ray) and a fine one around its best pose
+        (:data:`POLISH_FINE`, all rays); the fine grid's ``polish_keep`` best poses join the cloud. The range
+        likelihood is sharp (a pose 0.2 m to the side, or a degree off, can lose about half a nat per update;
+        ``tools/likelihood_peak.py`` measures it on a drive) and a hypothesis holds a few dozen particles over
+        metres and degrees, so without this the true place is judged by particles off its peak, which can fit
+        worse than a look-alike street's best particles for many updates. The coarse grid on a third of the
+        rays keeps the cost of finding the peak's neighbourhood low; the fine grid on all rays places it. The
+        seed's weight before this scan is shared among itself and the new poses, each then taking its own
+        likelihood. Returns ``loglik`` and ``bad`` extended to the new poses (the clusters are found again by
+        the search update: the new poses can join neighbouring ones)."""
+        labels, _count = cluster_labels(self.particles[:, :2], self.cluster_m)
+        sectors = 12
+        sector = np.floor((self.particles[:, 2] + math.pi) / (2 * math.pi) * sectors).astype(np.int64)
+        labels = labels * sectors + sector.clip(0, sectors - 1)
+        lw = self.log_w
+        mass = np.bincount(labels, weights=np.exp(lw - lw.max()))
+        top = np.argsort(-mass, kind="stable")[: self.polish_hypotheses]
+        top = top[mass[top] > 0]
+        if len(top) == 0:
+            return loglik, bad
+        order = np.lexsort((-lw, labels))  # by hypothesis, its heaviest particle first
+        seeds_idx = order[np.searchsorted(labels[order], top)]
+        k = len(seeds_idx)
+        inl0 = self.scorer.last_inliers
+        p, ll, b, inl = self._polish_grids(rays, self.particles[seeds_idx])
+        keep = min(self.polish_keep, ll.shape[1])
+        pick = np.argsort(-ll, axis=1, kind="stable")[:, :keep]
+        rows = np.arange(k)[:, None]
+        new, ll_new, bad_new = (
+            p[rows, pick].reshape(-1, 3),
+            ll[rows, pick].reshape(-1),
+            b[rows, pick].reshape(-1),
+        )
+        origin = np.repeat(seeds_idx, keep)  # each new pose's seed
+        split = math.log(keep + 1)
+        lw = lw.copy()
+        before = lw[origin] - loglik[origin]
+        lw[seeds_idx] -= split
+        n0 = len(self.particles)
+        self.log_w = np.concatenate([lw, before - split + ll_new])
+        self.particles = np.vstack([self.particles, new])
+        if self._leader is not None and len(self._leader) == n0:
+            self._leader = np.concatenate([self._leader, self._leader[origin]])
+        if inl0 is not None and inl is not None:
+            self.scorer.last_inliers = np.concatenate([inl0, inl[rows, pick].reshape(-1)])
+        else:
+            self.scorer.last_inliers = None
+        return np.concatenate([loglik, ll_new]), np.concatenate([bad, bad_new])
+
+    def _polish_grids(self, rays: ScanRays, seeds: np.ndarray):
+        """The polish's two grids around each seed ``(K, 3)``: the coarse grid (:data:`POLISH_COARSE`) on
+        every third ray, then the fine grid (:data:`POLISH_FINE`) on all of them around the coarse grid's
+        most likely pose. Returns the fine grids as :meth:`_grid_search` does."""
+        coarse_rays = rays.subset(slice(None, None, POLISH_COARSE_RAYS_EVERY))  # a third: the cost
+        p, ll, _b, _i = self._grid_search(coarse_rays, seeds, POLISH_COARSE)
+        coarse_best = p[np.arange(len(seeds)), np.argmax(ll, axis=1)]
+        return self._grid_search(rays, coarse_best, POLISH_FINE)
+
+    def _grid_search(self, rays: ScanRays, seeds: np.ndarray, grid: tuple[float, float, float, float]):
+        """Each seed ``(x, y, yaw)`` scored over a grid of poses in its own frame (forward, left, yaw):
+        ``grid`` = ``(half_m, step_m, half_deg, step_deg)``. Returns the poses ``(K, G, 3)``, their
+        log-likelihoods, badness and inlier shares ``(K, G)`` (inliers None for models without them)."""
+        half_m, step_m, half_deg, step_deg = grid
+        ax = np.arange(-half_m, half_m + 1e-9, step_m)
+        ay = np.radians(np.arange(-half_deg, half_deg + 1e-9, step_deg))
+        g = np.array(np.meshgrid(ax, ax, ay, indexing="ij")).reshape(3, -1).T
+        c, s = np.cos(seeds[:, 2])[:, None], np.sin(seeds[:, 2])[:, None]
+        p = np.empty((len(seeds), len(g), 3))
+        p[:, :, 0] = seeds[:, None, 0] + c * g[None, :, 0] - s * g[None, :, 1]
+        p[:, :, 1] = seeds[:, None, 1] + s * g[None, :, 0] + c * g[None, :, 1]
+        p[:, :, 2] = wrap_angle(seeds[:, None, 2] + g[None, :, 2])
+        flat = p.reshape(-1, 3)
+        ll, bad = self.scorer.score(rays, flat, self.sensor_z(flat[:, :2]))
+        inl = self.scorer.last_inliers
+        shape = (len(seeds), len(g))
+        return p, ll.reshape(shape), bad.reshape(shape), None if inl is None else inl.reshape(shape)
+
+    # --- one update of the search -------------------------------------------------------------------------
+
+    def _search_update(self, w: np.ndarray, levelled: np.ndarray | None) -> dict:
+        """After a weighed update while searching: the hypothesis search, or the paper's rule
+        (``convergence="tiles"``). Returns :class:`~rangemcl.localization.filter.StepInfo` fields."""
+        if self.convergence == "hypotheses":
+            return self._hypothesis_update(w, levelled)
+        return self._tiles_update(w)
+
+    def _hypothesis_update(self, w: np.ndarray, levelled: np.ndarray | None) -> dict:
+        """One update of the hypothesis search (:mod:`rangemcl.localization.hypotheses`): cluster,
+        test for a winner, else resample cluster by cluster to the KLD size and inject prior particles."""
+        labels, count = cluster_labels(self.particles[:, :2], self.cluster_m)
+        hyps = summarize(self.particles, w, labels, count)
+        self.hypotheses = hyps
+        best = hyps[0]
+        same = False
+        if self._leader is not None and len(self._leader) == len(labels):
+            same = bool(self._leader[labels == best.label].mean() >= 0.5)
+        won = self.convergence_test.update(hyps, same, self._moved_m)
+        inl = self.scorer.last_inliers
+        if won and inl is not None and len(inl) == len(labels):
+            # the winner must also fit: a place that merely fits less badly than the rest has not won
+            won = float(inl[labels == best.label].max()) >= self.min_inliers
+        margin = self.convergence_test.margin
+        out = dict(resampled=True, hypotheses=len(hyps), evidence_nats=margin)
+        self.last_estimate = best.centroid.copy()  # while searching, the leading hypothesis
+        if won:
+            inside = np.flatnonzero(labels == best.label)
+            wi = w[inside] / w[inside].sum()
+            self.particles = self.particles[inside]
+            self._resample_searching(wi, self.converged_count)
+            self._converge(search=True, settle=True)
+            self._leader = None
+            self.last_estimate = pose_estimate(self.particles, self.weights, self.estimate_best_share)
+            out["converged_now"] = True
+            return out
+        keep = [h for h in hyps if h.log_share >= best.log_share - self.prune_nats][: self.max_clusters]
+        provisional = self.particles[low_variance_resample(w, self.rng, len(w))]
+        size = kld_sample_size(occupied_bins(provisional, *self.kld_bin), self.kld_epsilon)
+        size = int(
+            np.clip(size, self.min_search_particles, max(self._spread_count, self.min_search_particles))
+        )
+        parts, logw, origin = resample_by_cluster(
+            self.particles, w, labels, keep, size, self.min_cluster_particles, self.rng
+        )
+        n = len(parts)
+        sxy, syaw = self.global_jitter[0], math.radians(self.global_jitter[1])
+        parts[:, :2] += self.rng.normal(0.0, sxy, (n, 2))
+        parts[:, 2] = wrap_angle(parts[:, 2] + self.rng.normal(0.0, syaw, n))
+        leader = origin == 0
+        if (
+            self.use_prior
+            and levelled is not None
+            and best.share <= self.inject_below_share
+            and self.inject_share > 0
+        ):
+            k = max(1, int(round(self.inject_share * n)))
+            fresh = self._from_prior(k, levelled, self.inject_top)
+            if fresh is not None and len(fresh):
+                share = min(self.inject_share * len(fresh) / k, 1.0 - 1e-12)
+                parts = np.vstack([parts, fresh])
+                each = math.log(max(self.inject_share, 1e-300) / k)
+                logw = np.concatenate([logw + math.log1p(-share), np.full(len(fresh), each)])
+                leader = np.concatenate([leader, np.zeros(len(fresh), bool)])
+        self.particles, self.log_w, self._leader = parts, logw, leader
+        return out
+
+    def _tiles_update(self, w: np.ndarray) -> dict:
+        """One update under the paper's rule: converged when :meth:`_tiles_converged`, else resampled when
+        the effective sample size falls below ``resample_neff_ratio``."""
+        n = len(self.particles)
+        if self._tiles_converged():
+            self._resample_searching(w, min(self.converged_count, n))
+            self._converge(search=True, settle=True)
+            return dict(resampled=True, converged_now=True)
+        if effective_sample_size(w) < self.resample_neff_ratio * n:
+            self._resample_searching(w, n)
+            return dict(resampled=True)
+        return {}
+
+    def _tiles_converged(self) -> bool:
+        """The paper's rule: all particles in ``tiles`` tiles (and 95 % within ``max_radius_m``), or a
+        cloud this compact (``compact_radius_m``) across a tile border."""
+        est = self.last_estimate
+        dist = np.hypot(self.particles[:, 0] - est[0], self.particles[:, 1] - est[1])
+        r95 = float(np.quantile(dist, 0.95))
+        if r95 <= self.compact_radius_m:
+            return True
+        tiles = np.unique(self.map.tile_at(self.particles[:, 0], self.particles[:, 1]))
+        return len(tiles) <= self.tiles and r95 <= self.max_radius_m
+
+    def _resample_searching(self, w: np.ndarray, n: int) -> None:
+        """``n`` particles resampled and roughened with the search's jitter (``global_jitter``)."""
+        self.particles, _parents = resample_roughened(self.particles, w, self.rng, n, *self.global_jitter)
+        self.log_w = np.zeros(n)
