@@ -406,7 +406,8 @@ def test_kiss_icp_odometry_for_a_bag_without_wheel_odometry(drives, small_town_m
     kiss = np.loadtxt(out / "odometry_kiss_icp.txt")
     assert kiss.shape == (FRAMES, 12) and np.all(np.isfinite(kiss))
     # kiss-icp's first metres on this street slide along it (up to 1 m in 20 frames, straight facades; its
-    # drift over 300 frames is measured in tests/rangemcl/test_lidar_odometry.py): the filter holds on
+    # drift over 300 frames is measured in tests/rangemcl/datasets/test_lidar_odometry.py): the filter
+    # holds on
     m = json.loads((out / "metrics.json").read_text())
     assert m["success"] and m["location_rmse_m"] < 0.25
 

@@ -2,7 +2,7 @@
 in its own.
 
 MuJoCo conventions this module relies on (each checked against ``mujoco.mj_ray`` in
-``tests/simbed/test_geometry.py``):
+``tests/simbed/sim/test_geometry.py``):
 
 * Geom sizes: plane ``(half x, half y, grid spacing)`` where a half-size ``<= 0`` means infinite along that
   axis; box half-sizes; sphere ``(r,)``; capsule and cylinder ``(r, half length)`` along the geom's z axis;

@@ -698,7 +698,7 @@ def test_the_second_opinions_grid_look_lands_on_the_likelihoods_peak(world):
 
 
 @pytest.mark.parametrize(
-    "path", sorted((Path(__file__).parents[2] / "configs").glob("*.yaml")), ids=lambda p: p.name
+    "path", sorted((Path(__file__).parents[3] / "configs").glob("*.yaml")), ids=lambda p: p.name
 )
 def test_the_shipped_configs_load_and_check(path):
     load_config(LocalizerSettings, path).check(str(path))

@@ -279,7 +279,7 @@ def test_odometry_drift_tool(kiss, drive, tmp_path, capsys):
     import json
     from pathlib import Path
 
-    path = Path(__file__).parents[2] / "tools" / "odometry_drift.py"
+    path = Path(__file__).parents[3] / "tools" / "odometry_drift.py"
     spec = importlib.util.spec_from_file_location("odometry_drift_tool", path)
     tool = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(tool)

@@ -32,7 +32,7 @@ from simbed.scenes.towngen import (
     use_parked_variant,
 )
 
-SCENES = Path(__file__).resolve().parents[2] / "scenes"
+SCENES = Path(__file__).resolve().parents[3] / "scenes"
 SIZE = 150.0  # small towns keep the generator tests fast
 
 

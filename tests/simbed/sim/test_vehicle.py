@@ -8,7 +8,7 @@ import mujoco
 import numpy as np
 import pytest
 
-CAR_XML = Path(__file__).resolve().parents[2] / "scenes" / "car.xml"
+CAR_XML = Path(__file__).resolve().parents[3] / "scenes" / "car.xml"
 WHEELBASE = 2.7
 DT = 0.002
 
