@@ -498,194 +498,193 @@ class LocalizerSettings:
     quarter of the memory available, else that quarter."""
 
     def check(self, where: str = "settings") -> None:
-        """Range checks that the types alone do not give; an InputError names the key."""
-        p, m, o, c, r = self.particles, self.motion, self.observation, self.convergence, self.recovery
-        positive = {
-            "particles.global_count": p.global_count,
-            "particles.converged_count": p.converged_count,
-            "particles.tracking_count": p.tracking_count,
-            "observation.sigma_m": o.sigma_m,
-            "observation.rays": o.rays,
-            "observation.margin_m": o.margin_m,
-            "observation.max_range_m": o.max_range_m,
-            "convergence.tiles": c.tiles,
-            "recovery.updates": r.updates,
-            "recovery.history": r.history,
-            "recovery.opinion_top": r.opinion_top,
-            "recovery.opinion_per_place": r.opinion_per_place,
-            "recovery.max_vetoed_updates": r.max_vetoed_updates,
-            "recovery.probation_hits": r.probation_hits,
-            "recovery.opinion_hits": r.opinion_hits,
-            "recovery.opinion_badness_ratio": r.opinion_badness_ratio,
-            "recovery.opinion_min_range_m": r.opinion_min_range_m,
-            "convergence.cluster_m": c.cluster_m,
-            "convergence.min_cluster_particles": c.min_cluster_particles,
-            "convergence.max_clusters": c.max_clusters,
-            "convergence.kld_epsilon": c.kld_epsilon,
-            "convergence.kld_bin_xy_m": c.kld_bin_xy_m,
-            "convergence.kld_bin_yaw_deg": c.kld_bin_yaw_deg,
-            "convergence.min_search_particles": c.min_search_particles,
-            "convergence.polish_keep": c.polish_keep,
-            "init.prior_top": self.init.prior_top,
-            "init.prior_cell_m": self.init.prior_cell_m,
-            "init.inject_top": self.init.inject_top,
-            "motion.odometry_scale": m.odometry_scale,
-            "motion.calibration_window_m": m.calibration_window_m,
-            "motion.calibration_window_s": m.calibration_window_s,
-            "refine.iterations": self.refine.iterations,
-            "refine.max_residual_m": self.refine.max_residual_m,
-            "refine.huber_m": self.refine.huber_m,
-            "refine.min_inliers": self.refine.min_inliers,
-            "refine.lever_m": self.refine.lever_m,
-            "motion.calibration_outlier_m": m.calibration_outlier_m,
-            "motion.calibration_outlier_deg": m.calibration_outlier_deg,
-            "motion.calibration_min_scale": m.calibration_min_scale,
-            "recovery.doubt_ratio": r.doubt_ratio,
+        """Range checks that the types alone do not give (:data:`_RULES`, then the keys that bound each
+        other); an InputError names the key."""
+        from rangemcl.localization.models import MODEL_NAMES
+
+        choices = {
+            "observation.model": MODEL_NAMES,
+            "observation.ray_sampling": RAY_SAMPLINGS,
+            "motion.calibration": ("estimator", "particles"),
+            "convergence.method": ("hypotheses", "tiles"),
+            "recovery.signal": ("inliers", "residual"),
         }
-        for key in (
-            "overlap_tau_m",
-            "overlap_sigma",
-            "histogram_bins",
-            "histogram_sigma",
-            "field_voxel_m",
-            "field_sigma_m",
-            "field_weight",
-        ):
-            positive[f"observation.{key}"] = getattr(o, key)
-        if o.cap_m is not None:
-            positive["observation.cap_m"] = o.cap_m
-        if o.cap_beyond_m is not None:
-            positive["observation.cap_beyond_m"] = o.cap_beyond_m
-        if r.min_residual_m is not None:
-            positive["recovery.min_residual_m"] = r.min_residual_m
-        if self.sensor_height_m is not None:
-            positive["sensor_height_m"] = self.sensor_height_m
-        if self.map_memory_mb is not None:
-            positive["map_memory_mb"] = self.map_memory_mb
-        if self.refine.min_hit_height_m is not None:
-            positive["refine.min_hit_height_m"] = self.refine.min_hit_height_m
-        for key, value in positive.items():
-            if not (math.isfinite(value) and value > 0):
-                raise InputError(f"{where}: {key} must be > 0, got {value}")
-        non_negative = {
-            "refine.all_heights_updates": self.refine.all_heights_updates,
-            "particles.tracking_sigma_xy_m": p.tracking_sigma_xy_m,
-            "particles.tracking_sigma_yaw_deg": p.tracking_sigma_yaw_deg,
-            "particles.jitter_xy_m": p.jitter_xy_m,
-            "particles.jitter_yaw_deg": p.jitter_yaw_deg,
-            "motion.update_distance_m": m.update_distance_m,
-            "motion.update_angle_deg": m.update_angle_deg,
-            "motion.rot_per_rot": m.rot_per_rot,
-            "motion.rot_per_trans": m.rot_per_trans,
-            "motion.trans_per_trans": m.trans_per_trans,
-            "motion.trans_per_rot": m.trans_per_rot,
-            "observation.min_range_m": o.min_range_m,
-            "convergence.max_radius_m": c.max_radius_m,
-            "convergence.compact_radius_m": c.compact_radius_m,
-            "recovery.factor": r.factor,
-            "init.drive_radius_m": self.init.drive_radius_m,
-            "init.heading_sigma_deg": self.init.heading_sigma_deg,
-            "particles.global_jitter_xy_m": p.global_jitter_xy_m,
-            "particles.global_jitter_yaw_deg": p.global_jitter_yaw_deg,
-            "convergence.margin_nats": c.margin_nats,
-            "convergence.min_distance_m": c.min_distance_m,
-            "convergence.prune_nats": c.prune_nats,
-            "convergence.polish_hypotheses": c.polish_hypotheses,
-            "convergence.separation_m": c.separation_m,
-            "recovery.inlier_factor": r.inlier_factor,
-            "recovery.inlier_residual_factor": r.inlier_residual_factor,
-            "recovery.inlier_residual_jump": r.inlier_residual_jump,
-            "recovery.opinion_inlier_gain": r.opinion_inlier_gain,
-            "recovery.doubt_inlier_gain": r.doubt_inlier_gain,
-            "recovery.probation_updates": r.probation_updates,
-            "recovery.polish_places": r.polish_places,
-            "recovery.polish_per_place": r.polish_per_place,
-            "recovery.polish_sigma_xy_m": r.polish_sigma_xy_m,
-            "recovery.polish_sigma_yaw_deg": r.polish_sigma_yaw_deg,
-            "init.prior_yaw_sigma_deg": self.init.prior_yaw_sigma_deg,
-            "motion.calibration_prior_m": m.calibration_prior_m,
-            "motion.calibration_prior_s": m.calibration_prior_s,
-            "motion.calibration_settle_updates": m.calibration_settle_updates,
-            "motion.calibration_sigma_scale": m.calibration_sigma_scale,
-            "motion.calibration_sigma_bias_deg_s": m.calibration_sigma_bias_deg_s,
-            "motion.calibration_walk_scale": m.calibration_walk_scale,
-            "motion.calibration_walk_bias_deg_s": m.calibration_walk_bias_deg_s,
-            "refine.min_information": self.refine.min_information,
-            "refine.gate_m": self.refine.gate_m,
-            "refine.gate_deg": self.refine.gate_deg,
-            "refine.weak_step_m": self.refine.weak_step_m,
-            "refine.min_incidence": self.refine.min_incidence,
-            "recovery.opinion_max_misses": r.opinion_max_misses,
-        }
-        for key, value in non_negative.items():
-            if not (math.isfinite(value) and value >= 0):
-                raise InputError(f"{where}: {key} must be >= 0, got {value}")
+        for key, allowed in choices.items():
+            value = self._value(key)
+            if value not in allowed:
+                expected = (
+                    f"'{allowed[0]}' or '{allowed[1]}'"
+                    if len(allowed) == 2
+                    else f"one of {', '.join(allowed)}"
+                )
+                raise InputError(f"{where}: {key} {value!r}: expected {expected}")
+        for key, rule in _RULES.items():
+            value = self._value(key)
+            if value is not None and not _RULE_TESTS[rule](value):
+                raise InputError(f"{where}: {key} must be {_RULE_TEXT.get(rule, rule)}, got {value}")
+        m, o, refine = self.motion, self.observation, self.refine
         if not m.calibration_max_scale >= m.calibration_min_scale:
             raise InputError(
                 f"{where}: motion.calibration_max_scale must be >= motion.calibration_min_scale, got "
                 f"{m.calibration_max_scale} and {m.calibration_min_scale}"
             )
-        if not math.isfinite(m.gyro_bias_deg_s):
-            raise InputError(f"{where}: motion.gyro_bias_deg_s must be finite, got {m.gyro_bias_deg_s}")
-        if not (isinstance(r.history_updates, int) and r.history_updates >= 0):
-            raise InputError(
-                f"{where}: recovery.history_updates must be an integer >= 0, got {r.history_updates}"
-            )
-        for key in ("history_margin", "history_min_inliers"):
-            if not (math.isfinite(getattr(r, key)) and 0 <= getattr(r, key) <= 1):
-                raise InputError(f"{where}: recovery.{key} must be in [0, 1], got {getattr(r, key)}")
-        weak = self.refine.weak_information
-        if weak is not None and not (math.isfinite(weak) and weak >= self.refine.min_information):
+        weak = refine.weak_information
+        if weak is not None and not weak >= refine.min_information:
             raise InputError(
                 f"{where}: refine.weak_information must be >= refine.min_information "
-                f"({self.refine.min_information}) or null, got {weak}"
+                f"({refine.min_information}) or null, got {weak}"
             )
-        sat = r.saturated_badness_ratio
-        if sat is not None and not (math.isfinite(sat) and 0 < sat < 1):
-            raise InputError(
-                f"{where}: recovery.saturated_badness_ratio must be in (0, 1) or null, got {sat}"
-            )
-        for key in ("prior_share", "inject_share", "inject_below_share"):
-            if not 0 <= getattr(self.init, key) <= 1:
-                raise InputError(f"{where}: init.{key} must be in [0, 1], got {getattr(self.init, key)}")
-        if m.calibration not in ("estimator", "particles"):
-            raise InputError(
-                f"{where}: motion.calibration {m.calibration!r}: expected 'estimator' or 'particles'"
-            )
-        if c.method not in ("hypotheses", "tiles"):
-            raise InputError(f"{where}: convergence.method {c.method!r}: expected 'hypotheses' or 'tiles'")
-        if r.signal not in ("inliers", "residual"):
-            raise InputError(f"{where}: recovery.signal {r.signal!r}: expected 'inliers' or 'residual'")
-        if not 0 <= c.min_inliers <= 1:
-            raise InputError(f"{where}: convergence.min_inliers must be in [0, 1], got {c.min_inliers}")
-        if not 0 <= self.init.uniform_yaw_share <= 1:
-            raise InputError(
-                f"{where}: init.uniform_yaw_share must be in [0, 1], got {self.init.uniform_yaw_share}"
-            )
-        if not 0 < p.resample_neff_ratio <= 1:
-            raise InputError(
-                f"{where}: particles.resample_neff_ratio must be in (0, 1], got {p.resample_neff_ratio}"
-            )
-        if not 0 < p.estimate_best_share <= 1:
-            raise InputError(
-                f"{where}: particles.estimate_best_share must be in (0, 1], got {p.estimate_best_share}"
-            )
-        from rangemcl.localization.models import MODEL_NAMES
-
-        if o.model not in MODEL_NAMES:
-            raise InputError(
-                f"{where}: observation.model {o.model!r}: expected one of {', '.join(MODEL_NAMES)}"
-            )
-        if o.ray_sampling not in RAY_SAMPLINGS:
-            raise InputError(
-                f"{where}: observation.ray_sampling {o.ray_sampling!r}: "
-                f"expected one of {', '.join(RAY_SAMPLINGS)}"
-            )
-        if not 0 <= o.ground_share <= 1:
-            raise InputError(f"{where}: observation.ground_share must be in [0, 1], got {o.ground_share}")
-        if not 0 <= o.tall_share <= 1:
-            raise InputError(f"{where}: observation.tall_share must be in [0, 1], got {o.tall_share}")
-        if not o.tall_m > 0:
-            raise InputError(f"{where}: observation.tall_m must be > 0, got {o.tall_m}")
         if o.min_range_m >= o.max_range_m:
             raise InputError(f"{where}: observation.min_range_m must be below observation.max_range_m")
+
+    def _value(self, key: str):
+        """The value of a dotted key (``section.name``, or a top-level name)."""
+        section, _, name = key.rpartition(".")
+        return getattr(getattr(self, section) if section else self, name)
+
+
+# The range rule of each numeric key that its type alone does not give (LocalizerSettings.check); a key
+# whose value is None (an optional setting switched off) is not checked.
+_RULES: dict[str, str] = {
+    **dict.fromkeys(
+        (
+            "particles.global_count",
+            "particles.converged_count",
+            "particles.tracking_count",
+            "observation.sigma_m",
+            "observation.rays",
+            "observation.margin_m",
+            "observation.max_range_m",
+            "observation.tall_m",
+            "observation.overlap_tau_m",
+            "observation.overlap_sigma",
+            "observation.histogram_bins",
+            "observation.histogram_sigma",
+            "observation.field_voxel_m",
+            "observation.field_sigma_m",
+            "observation.field_weight",
+            "observation.cap_m",
+            "observation.cap_beyond_m",
+            "convergence.tiles",
+            "convergence.cluster_m",
+            "convergence.min_cluster_particles",
+            "convergence.max_clusters",
+            "convergence.kld_epsilon",
+            "convergence.kld_bin_xy_m",
+            "convergence.kld_bin_yaw_deg",
+            "convergence.min_search_particles",
+            "convergence.polish_keep",
+            "recovery.updates",
+            "recovery.history",
+            "recovery.opinion_top",
+            "recovery.opinion_per_place",
+            "recovery.max_vetoed_updates",
+            "recovery.probation_hits",
+            "recovery.opinion_hits",
+            "recovery.opinion_badness_ratio",
+            "recovery.opinion_min_range_m",
+            "recovery.doubt_ratio",
+            "recovery.min_residual_m",
+            "init.prior_top",
+            "init.prior_cell_m",
+            "init.inject_top",
+            "motion.odometry_scale",
+            "motion.calibration_window_m",
+            "motion.calibration_window_s",
+            "motion.calibration_outlier_m",
+            "motion.calibration_outlier_deg",
+            "motion.calibration_min_scale",
+            "refine.iterations",
+            "refine.max_residual_m",
+            "refine.huber_m",
+            "refine.min_inliers",
+            "refine.lever_m",
+            "refine.min_hit_height_m",
+            "sensor_height_m",
+            "map_memory_mb",
+        ),
+        "> 0",
+    ),
+    **dict.fromkeys(
+        (
+            "particles.tracking_sigma_xy_m",
+            "particles.tracking_sigma_yaw_deg",
+            "particles.jitter_xy_m",
+            "particles.jitter_yaw_deg",
+            "particles.global_jitter_xy_m",
+            "particles.global_jitter_yaw_deg",
+            "motion.update_distance_m",
+            "motion.update_angle_deg",
+            "motion.rot_per_rot",
+            "motion.rot_per_trans",
+            "motion.trans_per_trans",
+            "motion.trans_per_rot",
+            "motion.calibration_prior_m",
+            "motion.calibration_prior_s",
+            "motion.calibration_settle_updates",
+            "motion.calibration_sigma_scale",
+            "motion.calibration_sigma_bias_deg_s",
+            "motion.calibration_walk_scale",
+            "motion.calibration_walk_bias_deg_s",
+            "observation.min_range_m",
+            "convergence.max_radius_m",
+            "convergence.compact_radius_m",
+            "convergence.margin_nats",
+            "convergence.min_distance_m",
+            "convergence.prune_nats",
+            "convergence.polish_hypotheses",
+            "convergence.separation_m",
+            "recovery.factor",
+            "recovery.inlier_factor",
+            "recovery.inlier_residual_factor",
+            "recovery.inlier_residual_jump",
+            "recovery.opinion_inlier_gain",
+            "recovery.doubt_inlier_gain",
+            "recovery.probation_updates",
+            "recovery.polish_places",
+            "recovery.polish_per_place",
+            "recovery.polish_sigma_xy_m",
+            "recovery.polish_sigma_yaw_deg",
+            "recovery.opinion_max_misses",
+            "init.drive_radius_m",
+            "init.heading_sigma_deg",
+            "init.prior_yaw_sigma_deg",
+            "refine.all_heights_updates",
+            "refine.min_information",
+            "refine.gate_m",
+            "refine.gate_deg",
+            "refine.weak_step_m",
+            "refine.min_incidence",
+        ),
+        ">= 0",
+    ),
+    **dict.fromkeys(
+        (
+            "recovery.history_margin",
+            "recovery.history_min_inliers",
+            "init.prior_share",
+            "init.inject_share",
+            "init.inject_below_share",
+            "init.uniform_yaw_share",
+            "convergence.min_inliers",
+            "observation.ground_share",
+            "observation.tall_share",
+        ),
+        "in [0, 1]",
+    ),
+    "particles.resample_neff_ratio": "in (0, 1]",
+    "particles.estimate_best_share": "in (0, 1]",
+    "recovery.saturated_badness_ratio": "in (0, 1)",
+    "recovery.history_updates": "an integer >= 0",
+    "motion.gyro_bias_deg_s": "finite",
+}
+_RULE_TESTS = {
+    "> 0": lambda v: math.isfinite(v) and v > 0,
+    ">= 0": lambda v: math.isfinite(v) and v >= 0,
+    "in [0, 1]": lambda v: math.isfinite(v) and 0 <= v <= 1,
+    "in (0, 1]": lambda v: math.isfinite(v) and 0 < v <= 1,
+    "in (0, 1)": lambda v: math.isfinite(v) and 0 < v < 1,
+    "an integer >= 0": lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0,
+    "finite": lambda v: math.isfinite(v),
+}
+_RULE_TEXT = {"in (0, 1)": "in (0, 1) or null"}

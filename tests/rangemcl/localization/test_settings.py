@@ -244,3 +244,37 @@ def test_the_settings_print_as_yaml_that_loads_back(tmp_path):
             want = LocalizerSettings()
             want.refine.gate_m = 0.4
         assert back == want and "sensor_height_m: null" in out.stdout
+
+
+def _numeric_keys(obj, prefix=""):
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        if dataclasses.is_dataclass(value):
+            yield from _numeric_keys(value, f"{prefix}{f.name}.")
+        elif "float" in str(f.type) or "int" in str(f.type):
+            yield f"{prefix}{f.name}"
+
+
+# keys bounded by another key rather than by a rule of their own (LocalizerSettings.check)
+BOUNDED_BY_ANOTHER = {"motion.calibration_max_scale", "refine.weak_information"}
+
+
+def test_every_numeric_key_has_a_range_rule():
+    keys = set(_numeric_keys(LocalizerSettings()))
+    assert keys - set(settings_module._RULES) - BOUNDED_BY_ANOTHER == set()
+    assert set(settings_module._RULES) <= keys
+
+
+@pytest.mark.parametrize("key", sorted(settings_module._RULES))
+def test_a_value_outside_its_rule_is_one_line_naming_the_key(key):
+    rule = settings_module._RULES[key]
+    bad = {"> 0": 0, ">= 0": -1.0, "in [0, 1]": 1.5, "in (0, 1]": 0.0, "in (0, 1)": 1.0}.get(
+        rule, float("nan")
+    )
+    if rule == "an integer >= 0":
+        bad = -1
+    s = LocalizerSettings()
+    section, _, name = key.rpartition(".")
+    setattr(getattr(s, section) if section else s, name, bad)
+    with pytest.raises(settings_module.InputError, match=rf"^cfg.yaml: {key.replace('.', '[.]')} must be"):
+        s.check("cfg.yaml")
