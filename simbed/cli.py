@@ -29,15 +29,24 @@ def make_town(
     seed: int = typer.Option(0, help="Seed of the layout."),
     size: float = typer.Option(400.0, help="Side of the square town, metres."),
     variants: int = typer.Option(2, help="Parked-car variants (one per mapping/test run)."),
+    style: str = typer.Option(
+        "grid",
+        help="grid (straight roads on a jittered grid, the shipped towns), suburb (winding roads between "
+        "scattered junctions, low houses, many trees) or mixed (a grid with some roads bent, tall centre, "
+        "low outskirts).",
+    ),
     overwrite: bool = typer.Option(False, help="Replace a town that OUT (and its files beside it) holds."),
 ) -> None:
     """Generate a town: roads with loops and junctions, terrain, buildings, poles, trees, parked cars."""
-    from simbed.scenes.towngen import generate_town
+    from simbed.scenes.towngen import generate_town, town_style
 
-    info = generate_town(seed, size, out, n_parked_variants=variants, overwrite=overwrite)
+    info = generate_town(
+        seed, size, out, n_parked_variants=variants, style=town_style(style), overwrite=overwrite
+    )
     typer.echo(
-        f"wrote {out} and {out.with_suffix('.yaml')}: {len(info.nodes)} junctions, {len(info.edges)} roads, "
-        f"{info.total_length_m:.0f} m of road, {info.parked_variants} parked-car variants"
+        f"wrote {out} and {out.with_suffix('.yaml')} ({info.style} style): {len(info.nodes)} junctions and "
+        f"bends, {len(info.edges)} roads, {info.total_length_m:.0f} m of road, {info.parked_variants} "
+        "parked-car variants"
     )
 
 

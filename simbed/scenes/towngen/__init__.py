@@ -31,6 +31,26 @@ What a town holds with the default style (world frame: metres, z up, the town ce
   :meth:`TownInfo.spawn_qpos` and :meth:`TownInfo.car_qpos`). Enable one parked-car set with
   :func:`use_parked_variant`.
 
+Styles (:data:`TOWN_STYLES`, ``simbed make-town --style``; :func:`generate_town` takes a name or a
+:class:`TownStyle`):
+
+* ``grid``: the default above (:data:`DEFAULT_STYLE`), the shipped towns.
+* ``suburb``: a winding suburb (``layout="organic"``). Junctions are Poisson-disc points at least 45 m apart,
+  joined by their Delaunay triangulation less the edges longer than 120 m, those that leave a node at
+  less than 60° to another road (the route's corner fillets would leave the asphalt) and those within
+  14 m of a road they share no node with; nodes left with one road go, the largest connected part stays,
+  and roads are removed as on the grid. Every road is then bent (:func:`roads.bend_roads`): cut into
+  20–35 m pieces joined at bend nodes displaced sideways along an arc or an S of up to 15 % of its length;
+  a bend that would break those angle or clearance rules is tried on the other side, then halved, else
+  dropped. Houses 4–10 m high on smaller, deeper-set lots, low walls more often, more and bigger trees,
+  fewer parked cars.
+* ``mixed``: the grid with about a third of its roads bent as above, building heights up to 40 m in the
+  centre shrinking toward 11 m at the border (``building_height_outskirts_frac``).
+
+Bend nodes follow the junctions in ``nodes`` and carry junction discs like them; frontages, poles, trees
+and parking of a road piece reach to ``bend_margin_m`` from a bend node. The sidecar names the style
+(``style: suburb``; absent for ``grid``, the key that older sidecars lack).
+
 Geom names: ``terrain``, ``road_{e}``, ``junction_{n}``, ``bldg_{b}_a``/``bldg_{b}_b``, ``wall_{w}``,
 ``pole_{p}``, ``tree_{t}_trunk``/``tree_{t}_crown``, ``parked_v{k}_{i}_body``/``parked_v{k}_{i}_cabin``.
 
@@ -62,12 +82,22 @@ from simbed.scenes.towngen.info import (
 from simbed.scenes.towngen.mjcf import paint_ground, write_png, write_terrain, write_xml
 from simbed.scenes.towngen.planner import Planner
 from simbed.scenes.towngen.roads import road_graph, road_surfaces, spawn_pose, town_terrain
-from simbed.scenes.towngen.style import DEFAULT_STYLE, SHIPPED_TOWNS, Range, TownPreset, TownStyle
+from simbed.scenes.towngen.style import (
+    DEFAULT_STYLE,
+    SHIPPED_TOWNS,
+    TOWN_STYLES,
+    Range,
+    TownPreset,
+    TownStyle,
+    style_name,
+    town_style,
+)
 
 __all__ = [
     "CAR_XML",
     "DEFAULT_STYLE",
     "SHIPPED_TOWNS",
+    "TOWN_STYLES",
     "Range",
     "Terrain",
     "TownInfo",
@@ -79,7 +109,9 @@ __all__ = [
     "load_town_info",
     "parked_variant_bodies",
     "rect_segment_distance",
+    "style_name",
     "town_files",
+    "town_style",
     "use_parked_variant",
 ]
 
@@ -93,7 +125,7 @@ def generate_town(
     *,
     n_parked_variants: int = 2,
     name: str | None = None,
-    style: TownStyle = DEFAULT_STYLE,
+    style: TownStyle | str = DEFAULT_STYLE,
     overwrite: bool = True,
 ) -> TownInfo:
     """Generate a town: write ``out_xml``, ``<stem>_terrain.bin``, ``<stem>_ground.img`` and ``<stem>.yaml``.
@@ -106,8 +138,10 @@ def generate_town(
         out_xml: the MJCF file to write; ``car.xml`` is copied next to it unless already there.
         n_parked_variants: number of parked-car sets ``parked_v{k}_{i}`` (k = 0 .. n-1).
         name: the town's name (default: ``out_xml``'s stem).
-        style: the generator's sizes, offsets, spacings and random ranges (:class:`TownStyle`); the XML's
-            header comment names the fields that differ from the default.
+        style: the generator's sizes, offsets, spacings and random ranges (:class:`TownStyle`), or the name
+            of one of :data:`TOWN_STYLES` (``grid``, ``suburb``, ``mixed``); the XML's header comment names
+            the style, or the fields that differ from the default, and the sidecar its name (``custom``
+            for a style that is none of them).
         overwrite: replace a town's files that exist; ``False`` refuses them before any work, naming
             ``--overwrite`` (``simbed make-town``'s policy,
             :func:`rangemcl.common.outdir.check_output_files`).
@@ -121,8 +155,10 @@ def generate_town(
         raise InputError(f"town size_m must be a number in [120, 5000], got {size_m!r}")
     if isinstance(n_parked_variants, bool) or not isinstance(n_parked_variants, int) or n_parked_variants < 0:
         raise InputError(f"n_parked_variants must be a non-negative integer, got {n_parked_variants!r}")
+    if isinstance(style, str):
+        style = town_style(style)
     if not isinstance(style, TownStyle):
-        raise InputError(f"town style must be a TownStyle, got {type(style).__name__}")
+        raise InputError(f"town style must be a TownStyle or a style name, got {type(style).__name__}")
     seed = int(seed)
     size_m = float(size_m)
     out_xml = Path(out_xml)
@@ -135,13 +171,13 @@ def generate_town(
     rng = np.random.default_rng(seed)
 
     # roads and terrain
-    nodes, edges = road_graph(rng, size_m, style)
+    nodes, edges, n_junctions = road_graph(rng, size_m, style)
     terrain, hnode, natural = town_terrain(rng, size_m, nodes, edges, style, f"{out_xml.stem}_terrain.bin")
     road_boxes, junctions = road_surfaces(nodes, edges, hnode, style)
     spawn = spawn_pose(rng, nodes, edges, style)
 
     # buildings, walls, poles, trees and parked cars
-    plan = Planner(rng, size_m, nodes, edges, terrain.height, style)
+    plan = Planner(rng, size_m, nodes, edges, terrain.height, style, n_junctions)
     plan.frontages()
     plan.poles_and_street_trees()
     plan.block_trees()
@@ -162,6 +198,7 @@ def generate_town(
         spawn=spawn,
         terrain=terrain,
         yaml_path=out_xml.with_suffix(".yaml"),
+        style=style_name(style),
     )
     out_xml.parent.mkdir(parents=True, exist_ok=True)
     write_terrain(out_xml.parent / terrain.file, terrain.data)

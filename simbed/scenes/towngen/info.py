@@ -84,12 +84,16 @@ class TownInfo:
             ``[-size_m/2, size_m/2]`` in x and y).
         road_width_m, lane_width_m: the style's, 8.0 and 3.5 by default (two lanes, one each way,
             right-hand traffic).
-        nodes: (K, 2) junction positions; edges: (E, 2) int node index pairs, each a straight two-way road.
+        nodes: (K, 2) junction positions, then the bend nodes of bent roads (styles ``suburb``, ``mixed``);
+            edges: (E, 2) int node index pairs, each a straight two-way road (a bent road is several).
         total_length_m: summed length of the edges (node to node).
         parked_variants: number of parked-car sets ``parked_v{k}_*`` in the XML.
         spawn: (x, y, yaw) a start pose in the right-hand lane of a road, heading along it.
         terrain: the height field (:class:`Terrain`).
         yaml_path: the sidecar this came from (the XML is ``yaml_path.with_suffix(".xml")``).
+        style: the generator's named style (``grid``, ``suburb``, ``mixed``: ``simbed make-town --style``),
+            ``custom`` for another :class:`~simbed.scenes.towngen.style.TownStyle`; a sidecar without the
+            key (the grid's, and every older one) reads as ``grid``.
     """
 
     name: str
@@ -104,6 +108,7 @@ class TownInfo:
     spawn: tuple[float, float, float]
     terrain: Terrain
     yaml_path: Path | None = None
+    style: str = "grid"
 
     @property
     def xml_path(self) -> Path | None:
@@ -165,6 +170,7 @@ def write_yaml(path: Path, info: TownInfo) -> None:
         f"name: {info.name if plain else json.dumps(info.name)}",
         f"seed: {info.seed}",
         f"size_m: {float(info.size_m)!r}",
+        *([] if info.style == "grid" else [f"style: {info.style}"]),  # the grid's sidecar as it always was
         f"road_width_m: {info.road_width_m!r}",
         f"lane_width_m: {info.lane_width_m!r}",
         "roads:",
@@ -273,6 +279,9 @@ def load_town_info(yaml_path: Path | str) -> TownInfo:
     name = doc["name"]
     if not isinstance(name, str) or not name:
         raise _fail(path, f"name must be a non-empty string, got {name!r}")
+    style = doc.get("style", "grid")
+    if not isinstance(style, str) or not re.fullmatch(r"[a-z][a-z0-9_-]*", style):
+        raise _fail(path, f"style must be a style name such as grid, suburb or mixed, got {style!r}")
     return TownInfo(
         name=name,
         seed=number(doc["seed"], "seed", integer=True),
@@ -290,6 +299,7 @@ def load_town_info(yaml_path: Path | str) -> TownInfo:
         ),
         terrain=terrain,
         yaml_path=path,
+        style=style,
     )
 
 

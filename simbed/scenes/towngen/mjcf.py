@@ -15,7 +15,7 @@ from simbed.scenes.towngen.geometry import Box, ParkedCar, point_segment_distanc
 from simbed.scenes.towngen.info import Terrain
 from simbed.scenes.towngen.info import format_number as _f
 from simbed.scenes.towngen.planner import Planner
-from simbed.scenes.towngen.style import DEFAULT_STYLE, TownStyle
+from simbed.scenes.towngen.style import DEFAULT_STYLE, TownStyle, style_name
 
 # The ground texture's colours (sRGB 0..255); grass is shaded by the relief, ± this fraction at its extremes.
 _ASPHALT_RGB = (56, 56, 61)
@@ -35,7 +35,11 @@ def _quat(yaw: float, pitch: float = 0.0) -> str:
 
 
 def _style_note(style: TownStyle) -> str:
-    """``, style=TownStyle(field=value, ...)`` with the fields that differ from the default; "" if none."""
+    """``, style=TownStyle(field=value, ...)`` with the fields that differ from the default; "" if none;
+    ``, style='suburb'`` for a named style other than the default (:data:`TOWN_STYLES`)."""
+    name = style_name(style)
+    if name not in ("grid", "custom"):
+        return f", style={name!r}"
     changed = [
         f"{f.name}={getattr(style, f.name)!r}"
         for f in fields(style)

@@ -24,7 +24,9 @@ _N_BUILDING_MATERIALS = 5  # building0 .. building4 in the XML's assets
 class Planner:
     """Places buildings, walls, poles, trees and parked cars beside the roads without overlaps."""
 
-    def __init__(self, rng, size_m, nodes, edges, ground, style: TownStyle):
+    def __init__(self, rng, size_m, nodes, edges, ground, style: TownStyle, n_junctions: int | None = None):
+        """``nodes[n_junctions:]`` are bend nodes (:func:`~simbed.scenes.towngen.roads.bend_roads`): a road
+        piece's frontage, poles, trees and parking reach to ``style.bend_margin_m`` from them."""
         self.rng = rng
         self.style = style
         self.size_m = size_m
@@ -32,6 +34,7 @@ class Planner:
         self.edges = edges
         self.a = nodes[edges[:, 0]]
         self.b = nodes[edges[:, 1]]
+        self.is_bend = np.arange(len(nodes)) >= (len(nodes) if n_junctions is None else n_junctions)
         self.ground = ground
         self.occ = Occupancy()
         self.boxes: list[Box] = []
@@ -58,6 +61,13 @@ class Planner:
         n = np.array([-u[1], u[0]])
         return a, u, n, length, math.atan2(u[1], u[0])
 
+    def _ends(self, e: int, junction_m: float) -> tuple[float, float]:
+        """Margins from edge ``e``'s start and end node: ``junction_m`` at a junction, the bend margin at a
+        bend node."""
+        i, j = self.edges[e]
+        bend = self.style.bend_margin_m
+        return (bend if self.is_bend[i] else junction_m), (bend if self.is_bend[j] else junction_m)
+
     def _base_top(self, center, yaw, half):
         corners = rect_corners(center, yaw, half)
         pts = np.vstack([corners, center])
@@ -70,11 +80,12 @@ class Planner:
         jr = st.junction_radius_m
         for e in range(len(self.edges)):
             a, u, n, length, yaw = self._frame(e)
+            m0, m1 = self._ends(e, jr)
             for side in (1.0, -1.0):
-                s = jr + rng.uniform(*st.lot_start_m)
-                while s < length - jr - st.lot_min_width_m:
+                s = m0 + rng.uniform(*st.lot_start_m)
+                while s < length - m1 - st.lot_min_width_m:
                     width = rng.uniform(*st.lot_width_m)
-                    width = min(width, length - jr - s)
+                    width = min(width, length - m1 - s)
                     kind = rng.choice(["building", "wall", "gap"], p=list(st.lot_kind_prob))
                     if width >= st.lot_min_width_m and kind == "building":
                         self._building(a, u, n, yaw, side, s, width)
@@ -90,6 +101,9 @@ class Planner:
         )
         depth = rng.uniform(*st.building_depth_m)
         h_lo, h_hi = st.building_height_m
+        if st.building_height_outskirts_frac != 1.0:  # lower toward the border (1: the shipped towns' draws)
+            r = min(1.0, float(np.linalg.norm(a + u * (s + width / 2))) / (self.size_m / 2))
+            h_hi = h_lo + (h_hi - h_lo) * (1.0 - (1.0 - st.building_height_outskirts_frac) * r)
         height = h_lo + (h_hi - h_lo) * rng.beta(*st.building_height_beta_shape)
         l_shape = rng.random() < st.l_shape_prob
         wing_w = rng.uniform(*st.wing_width_frac) * width
@@ -165,9 +179,10 @@ class Planner:
         tree_lo, tree_hi = st.street_tree_start_m
         for e in range(len(self.edges)):
             a, u, n, length, yaw = self._frame(e)
-            s = jr + pole_lo + rng.uniform(0.0, pole_hi - pole_lo)
+            m0, m1 = self._ends(e, jr)
+            s = m0 + pole_lo + rng.uniform(0.0, pole_hi - pole_lo)
             side = rng.choice([-1.0, 1.0])
-            while s < length - jr - pole_lo:
+            while s < length - m1 - pole_lo:
                 xy = a + u * s + side * n * st.pole_offset_m
                 r = st.pole_radius_m
                 clearance = st.pole_offset_m - st.pole_road_slack_m
@@ -185,8 +200,8 @@ class Planner:
                 s += rng.uniform(*st.pole_spacing_m)
                 side = -side
             for side in (1.0, -1.0):
-                s = jr + tree_lo + rng.uniform(0.0, tree_hi - tree_lo)
-                while s < length - jr - tree_lo:
+                s = m0 + tree_lo + rng.uniform(0.0, tree_hi - tree_lo)
+                while s < length - m1 - tree_lo:
                     if rng.random() < st.street_tree_prob:
                         xy = a + u * s + side * n * (st.tree_offset_m + rng.uniform(*st.tree_offset_jitter_m))
                         clearance = st.tree_offset_m - st.street_tree_road_slack_m
@@ -235,10 +250,15 @@ class Planner:
         spots = []
         for e in range(len(self.edges)):
             a, u, n, length, yaw = self._frame(e)
-            count = int((length - 2 * (st.junction_radius_m + st.parking_end_clearance_m)) // pitch)
+            m0, m1 = self._ends(e, st.junction_radius_m + st.parking_end_clearance_m)
+            if self.is_bend[self.edges[e]].any():  # the row centred between the margins
+                count = int((length - m0 - m1) // pitch)
+                s0 = m0 + (length - m0 - m1 - (count - 1) * pitch) / 2
+            else:  # the arithmetic that wrote the shipped towns
+                count = int((length - 2 * (st.junction_radius_m + st.parking_end_clearance_m)) // pitch)
+                s0 = (length - (count - 1) * pitch) / 2
             if count <= 0:
                 continue
-            s0 = (length - (count - 1) * pitch) / 2
             for side in (1.0, -1.0):
                 heading = yaw if side < 0 else yaw + math.pi  # right-hand traffic
                 heading = float(wrap_angle(heading))

@@ -1,11 +1,11 @@
 """What the town generator draws from: :class:`TownStyle` (every size, offset, spacing and random range, each
-field documented, its unit in its name) and the towns shipped in ``scenes/`` (:class:`TownPreset`,
-:data:`SHIPPED_TOWNS`)."""
+field documented, its unit in its name), the named styles (:data:`TOWN_STYLES`) and the towns shipped in
+``scenes/`` (:class:`TownPreset`, :data:`SHIPPED_TOWNS`)."""
 
 from __future__ import annotations  # TownStyle checks its fields by their annotations' text ("Range", ...)
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
@@ -57,6 +57,41 @@ class TownStyle:
     """The road graph keeps at least this many independent loops (all the grid's if it has fewer) ..."""
     min_loops_frac: float = 0.5
     """... or this fraction of the grid's independent loops (rounded down), whichever is more."""
+    layout: str = "grid"
+    """Where the junctions lie: ``"grid"`` (a jittered grid, the fields above) or ``"organic"`` (scattered
+    junctions joined by a planar graph, the fields below); either way roads are then removed as
+    ``removed_roads_frac``, ``min_loops_count`` and ``min_loops_frac`` say."""
+    junction_spacing_m: float = 45.0
+    """Organic layout: least distance between two junctions (Poisson-disc points inside the town's border
+    less ``graph_margin_m``)."""
+    junction_candidates_count: int = 40
+    """Organic layout: candidate points drawn per ``junction_spacing_m``² of area; each is kept if no kept one
+    lies nearer than ``junction_spacing_m`` (more candidates fill the town more tightly)."""
+    max_road_length_m: float = 120.0
+    """Organic layout: edges of the junctions' Delaunay triangulation longer than this are no roads."""
+    min_road_angle_deg: float = 60.0
+    """Least angle between two roads leaving one node: the organic layout drops the longer road of a sharper
+    pair, and a bend that makes a sharper angle is not taken. A route turning between two roads rounds the
+    corner with a fillet of up to 7 m radius, which at sharper angles leaves the asphalt toward the poles
+    and parked cars of the wedge between them."""
+    road_clearance_m: float = 14.0
+    """Least distance between the centre lines of two road pieces that share no node (a road width plus
+    margins): the organic layout drops the longer road of a closer pair, and a bend that comes closer to
+    another road is not taken."""
+    bent_road_prob: float = 0.0
+    """Probability that a road (junction to junction) is bent: cut into pieces joined at bend nodes displaced
+    sideways, so that it winds (0: every road straight, the grid towns of ``scenes/``)."""
+    bend_piece_m: Range = (20.0, 35.0)
+    """Wanted length of the pieces of a bent road: ``round(length / drawn value)`` pieces, as many as keep
+    every piece at least the low end long; a road too short for two pieces stays straight."""
+    bend_amplitude_frac: Range = (0.05, 0.15)
+    """Largest sideways displacement of a bent road's centre line, as a fraction of its length (to either
+    side at random; halved, then the road left straight, where the bend would come too near a road)."""
+    bend_s_curve_prob: float = 0.35
+    """Probability that a bent road is an S (a full sine period) rather than an arc (half a period)."""
+    bend_margin_m: float = 2.0
+    """Lots, poles, street trees and parking spots of a road piece reach this near a bend node (at a junction
+    they stop at the junction disc, ``junction_radius_m``; parking ``parking_end_clearance_m`` beyond)."""
 
     # terrain
     flat_half_width_m: float = 9.5
@@ -105,6 +140,10 @@ class TownStyle:
     """Height of a building above its highest ground corner; also the least height of an L shape's wing."""
     building_height_beta_shape: Range = (1.4, 3.0)
     """Shapes (a, b) of the Beta distribution of heights within ``building_height_m`` (mostly low)."""
+    building_height_outskirts_frac: float = 1.0
+    """The top of ``building_height_m`` shrinks toward the town's border: the span above the low end is scaled
+    by 1 at the centre, falling linearly with the distance from the centre to this fraction at half the
+    town's size (and beyond); 1 keeps the range everywhere."""
     l_shape_prob: float = 0.35
     """Probability that a building is an L shape: the main box and a wing behind one end of it."""
     wing_width_frac: Range = (0.35, 0.6)
@@ -244,6 +283,8 @@ _SIGNED_RANGES = frozenset(
         "parked_car_yaw_jitter_deg",
     }
 )
+# The string fields and the values each may take.
+_CHOICES = {"layout": ("grid", "organic")}
 # Numbers (or ranges' low ends) that must be > 0: sizes of geoms, divisors, steps of the placement loops.
 _POSITIVE = frozenset(
     {
@@ -253,6 +294,10 @@ _POSITIVE = frozenset(
         "max_grade_m_per_m",
         "block_pitch_m",
         "max_block_pitch_m",
+        "junction_spacing_m",
+        "max_road_length_m",
+        "road_clearance_m",
+        "bend_piece_m",
         "relief_blend_m",
         "relief_peak_to_peak_m",
         "relief_wavelength_m",
@@ -296,7 +341,8 @@ def _style_error(name: str, problem: str) -> InputError:
 
 
 def _checked_style_value(name: str, kind: str, value: Any) -> Any:
-    """``value`` of TownStyle field ``name`` (annotation ``kind``) as float, int or tuple; or InputError."""
+    """``value`` of TownStyle field ``name`` (annotation ``kind``) as float, int, tuple or one of the field's
+    string choices; or InputError."""
 
     def number(v: Any) -> float:
         if (
@@ -307,6 +353,11 @@ def _checked_style_value(name: str, kind: str, value: Any) -> Any:
             raise _style_error(name, f"must be a finite number, got {value!r}")
         return float(v)
 
+    if kind == "str":
+        allowed = _CHOICES[name]
+        if not isinstance(value, str) or value not in allowed:
+            raise _style_error(name, f"must be one of {', '.join(map(repr, allowed))}, got {value!r}")
+        return value
     if kind == "int":
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
             raise _style_error(name, f"must be a positive integer, got {value!r}")
@@ -334,6 +385,60 @@ def _checked_style_value(name: str, kind: str, value: Any) -> Any:
 
 DEFAULT_STYLE = TownStyle()
 """The style of the shipped towns."""
+
+TOWN_STYLES: dict[str, TownStyle] = {
+    "grid": DEFAULT_STYLE,
+    "suburb": replace(
+        DEFAULT_STYLE,
+        layout="organic",
+        removed_roads_frac=0.15,
+        min_loops_count=2,
+        min_loops_frac=0.6,
+        bent_road_prob=1.0,
+        lot_width_m=(10.0, 16.0),
+        lot_gap_m=(2.0, 6.0),
+        lot_kind_prob=(0.68, 0.24, 0.08),
+        building_setback_m=(2.0, 6.0),
+        building_depth_m=(8.0, 12.0),
+        building_height_m=(4.0, 10.0),
+        building_height_beta_shape=(1.5, 2.5),
+        l_shape_prob=0.3,
+        wing_depth_m=(4.0, 8.0),
+        wall_height_m=(0.8, 1.6),
+        street_tree_prob=0.85,
+        street_tree_spacing_m=(8.0, 16.0),
+        street_tree_crown_radius_m=(1.6, 2.6),
+        block_tree_area_m2=300.0,
+        block_tree_crown_radius_m=(2.0, 4.5),
+        tree_trunk_height_m=(3.0, 5.0),
+        parked_car_prob=0.15,
+    ),
+    "mixed": replace(
+        DEFAULT_STYLE,
+        bent_road_prob=0.35,
+        building_height_m=(4.0, 40.0),
+        building_height_beta_shape=(1.2, 2.0),
+        building_height_outskirts_frac=0.2,
+        lot_kind_prob=(0.76, 0.12, 0.12),
+        parked_car_prob=0.35,
+    ),
+}
+"""Named styles (``simbed make-town --style``): ``grid``, the shipped towns' jittered grid of straight roads
+(:data:`DEFAULT_STYLE`); ``suburb``, scattered junctions and winding roads, low houses on small footprints set
+back from the road, more and bigger trees, low walls more often, fewer parked cars; ``mixed``, the grid with
+about a third of its roads bent, tall buildings in the centre and low ones toward the border."""
+
+
+def town_style(name: str) -> TownStyle:
+    """The named style ``name`` of :data:`TOWN_STYLES`, or one :class:`InputError` line naming the choices."""
+    if not isinstance(name, str) or name not in TOWN_STYLES:
+        raise InputError(f"unknown town style {name!r}; expected one of: {', '.join(TOWN_STYLES)}")
+    return TOWN_STYLES[name]
+
+
+def style_name(style: TownStyle) -> str:
+    """The name under which :data:`TOWN_STYLES` holds ``style`` (equal fields), else ``"custom"``."""
+    return next((nm for nm, st in TOWN_STYLES.items() if st == style), "custom")
 
 
 @dataclass(frozen=True)
