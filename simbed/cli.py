@@ -248,18 +248,33 @@ def _int_list(text: str, option: str) -> tuple[int, ...]:
 
 @app.command()
 def trials(
-    suite: str = typer.Argument(..., help="particles, sensors, models, kidnap or runtime."),
-    out: Path = typer.Option(..., help="Suite folder (drives, trials, results.csv, SUITE.md, SUITE.png)."),
-    map_dir: Path = typer.Option(..., "--map", help="The scene's map folder (rangemcl build-map)."),
-    quick: bool = typer.Option(False, help="A handful of trials (CI size)."),
-    scene: str = typer.Option("town_small", help="Scene of the test drives."),
-    route: str = typer.Option("test", help="Route of the test drives."),
-    sensor: str = typer.Option("os1-64", help="Sensor (all suites but 'sensors')."),
-    actors: int = typer.Option(10, help="Moving actors in the test drives."),
-    variant: int = typer.Option(1, help="Parked-car variant of the test drives."),
-    drive_frames: int = typer.Option(1000, help="Frames of each test drive."),
-    frames: int = typer.Option(250, help="Frames of each trial."),
-    starts: int = typer.Option(10, help="Start points per setting."),
+    suite: str = typer.Argument(..., help="particles, sensors, models, kidnap, runtime or generalization."),
+    out: Path = typer.Option(
+        ...,
+        help="Suite folder (drives, trials, results.csv, SUITE.md, SUITE.png; generalization: towns.yaml, "
+        "towns/, generalization.md and .csv).",
+    ),
+    map_dir: Path = typer.Option(
+        None,
+        "--map",
+        help="The scene's map folder (rangemcl build-map); every suite but generalization, which maps the "
+        "towns it draws.",
+    ),
+    quick: bool = typer.Option(False, help="A handful of trials (CI size; generalization: one tiny town)."),
+    scene: str = typer.Option(
+        None, help="Scene of the test drives (default town_small; not generalization)."
+    ),
+    route: str = typer.Option(None, help="Route of the test drives (default test)."),
+    sensor: str = typer.Option(
+        None, help="Sensor (all suites but 'sensors'; default os1-64); generalization: of the mapping drives."
+    ),
+    actors: int = typer.Option(None, help="Moving actors in the test drives (default 10)."),
+    variant: int = typer.Option(None, help="Parked-car variant of the test drives (default 1)."),
+    drive_frames: int = typer.Option(
+        None, help="Frames of each test drive (default 1000; generalization 800)."
+    ),
+    frames: int = typer.Option(None, help="Frames of each trial (default 250; generalization 100)."),
+    starts: int = typer.Option(None, help="Start points per setting (default 10; generalization 5)."),
     counts: str = typer.Option(
         None,
         help="Suite 'particles': particle counts, comma-separated (default 1000,5000,10000,50000,100000).",
@@ -268,7 +283,24 @@ def trials(
         None, help="Suites 'particles' and 'models': observation models, comma-separated (default: all four)."
     ),
     sensors: str = typer.Option(
-        None, help="Suite 'sensors': sensor presets, comma-separated (default: the paper's five)."
+        None,
+        help="Suites 'sensors' and 'generalization': sensor presets, comma-separated (default: the paper's "
+        "five).",
+    ),
+    towns: int = typer.Option(None, help="Generalization: towns to draw (default 5)."),
+    town_seeds: str = typer.Option(
+        None, help="Generalization: the towns' generator seeds, comma-separated (default: drawn)."
+    ),
+    run_seed: int = typer.Option(
+        None,
+        help="Generalization: the seed of every draw, printed and recorded in OUT/towns.yaml; it repeats a "
+        "run (default: fresh from the OS, or the one OUT/towns.yaml recorded, to continue that run).",
+    ),
+    sizes: str = typer.Option(
+        None, help="Generalization: the towns' sides are drawn from LOW-HIGH metres (default 200-500)."
+    ),
+    styles: str = typer.Option(
+        None, help="Generalization: town styles, comma-separated, cycled (default: every named style)."
     ),
     workers: int = typer.Option(None, help="Trials in parallel (default: all cores)."),
     backend: str = typer.Option("process", help="process (local pool) or ray."),
@@ -291,31 +323,74 @@ def trials(
         False, help="Start the suite folder over (its drives, trials and results are replaced)."
     ),
 ) -> None:
-    """Run (or continue) one of the paper's experiments as a suite of localization trials.
+    """Run (or continue) one of the paper's experiments as a suite of localization trials, or
+    (generalization) the sensors suite in towns drawn fresh for the run, each mapped first.
 
     A suite folder is continued by design: trials already in its results.csv are kept and not run again
     (trial keys name every setting), so rerunning the same command after an interruption finishes it."""
     from dataclasses import replace
 
     from rangemcl.errors import InputError
-    from simbed.trials.suites import SuiteConfig, run_suite, suite_settings
+    from simbed.trials.suites import SUITES, SuiteConfig, run_suite, suite_settings
 
+    general = suite == "generalization"
+    if suite not in (*SUITES, "generalization"):
+        raise InputError(f"suite {suite!r}: expected one of {', '.join(SUITES)}, generalization")
     if compare and not report_only:
         raise InputError("--compare: only with --report-only (run each method with its own --config)")
-    suite_config = SuiteConfig(
-        scene=scene,
-        route=route,
-        variant=variant,
-        actors=actors,
-        drive_frames=drive_frames,
-        frames=frames,
-        starts=starts,
-        sensor=sensor,
-        particle_counts=None if counts is None else _int_list(counts, "--counts"),
-        models=None if models is None else tuple(m.strip() for m in models.split(",") if m.strip()),
-        sensors=None if sensors is None else tuple(m.strip() for m in sensors.split(",") if m.strip()),
-        settings="" if config is None else suite_settings(config),
-        method="default" if config is None else config.stem,
+    given = {
+        "scene": scene,
+        "route": route,
+        "sensor": None if general else sensor,  # generalization: the mapping drives' sensor
+        "variant": variant,
+        "actors": actors,
+        "drive_frames": drive_frames,
+        "frames": frames,
+        "starts": starts,
+        "particle_counts": None if counts is None else _int_list(counts, "--counts"),
+        "models": None if models is None else tuple(m.strip() for m in models.split(",") if m.strip()),
+        "sensors": None if sensors is None else tuple(m.strip() for m in sensors.split(",") if m.strip()),
+    }
+    given = {k: v for k, v in given.items() if v is not None}
+    draw = {
+        "--towns": towns,
+        "--town-seeds": town_seeds,
+        "--run-seed": run_seed,
+        "--sizes": sizes,
+        "--styles": styles,
+    }
+    if general:
+        from simbed.trials.generalization import MARKERS, generalization_settings
+
+        for option, value in (
+            ("--map", map_dir),
+            ("--scene", scene),
+            ("--counts", counts),
+            ("--models", models),
+        ):
+            if value is not None:
+                raise InputError(
+                    f"{option}: not for suite 'generalization' (it draws its towns and maps them)"
+                )
+        gen = generalization_settings(
+            quick,
+            towns=towns,
+            town_seeds=None if town_seeds is None else _int_list(town_seeds, "--town-seeds"),
+            sizes=sizes,
+            styles=styles,
+            mapping_sensor=sensor,
+            suite=given,
+        )
+        base = gen.suite
+    else:
+        option = next((o for o, v in draw.items() if v is not None), None)
+        if option is not None:
+            raise InputError(f"{option}: only for suite 'generalization'")
+        if map_dir is None and not report_only:
+            raise InputError(f"--map: suite {suite!r} needs the scene's map folder (rangemcl build-map)")
+        base = SuiteConfig(**given)
+    suite_config = (
+        base if config is None else replace(base, settings=suite_settings(config), method=config.stem)
     )
     others = tuple(
         replace(suite_config, settings="", method="default")
@@ -326,6 +401,21 @@ def trials(
     from rangemcl.common.outdir import check_output, output_folder
 
     def run():
+        if general:
+            from simbed.trials.generalization import run_generalization
+
+            return run_generalization(
+                out,
+                replace(gen, suite=suite_config),
+                run_seed=run_seed,
+                workers=workers,
+                backend=backend,
+                address=address,
+                device=device,
+                say=typer.echo,
+                report_only=report_only,
+                compare=others,
+            )
         return run_suite(
             suite,
             out,
@@ -341,7 +431,7 @@ def trials(
             compare=others,
         )
 
-    markers = ("results.csv", "drives", "trials")
+    markers = MARKERS if general else ("results.csv", "drives", "trials")
     if report_only and overwrite:
         raise InputError("--report-only reads the suite folder, --overwrite replaces it: give one of them")
     if report_only:
@@ -351,13 +441,22 @@ def trials(
         typer.echo(f"continuing the suite folder {out} (--overwrite starts it over)")
         rows = run()
     else:  # a new folder, or --overwrite: rangemcl.common.outdir's policy (nothing left by a failed start)
-        keep = lambda p: (p / "results.csv").is_file() or any((p / "drives").glob("*/meta.yaml"))  # noqa: E731
+        if general:  # a run that recorded its towns is kept, to continue
+            keep = lambda p: (p / markers[0]).is_file()  # noqa: E731
+        else:
+            keep = lambda p: (p / "results.csv").is_file() or any((p / "drives").glob("*/meta.yaml"))  # noqa: E731
         with output_folder(out, overwrite=overwrite, kind="suite results", markers=markers, keep_if=keep):
             rows = run()
     ok = sum(str(r["success"]).lower() == "true" for r in rows)
-    typer.echo(
-        f"{suite}: {ok}/{len(rows)} trials successful; table {out}/{suite}.md, figure {out}/{suite}.png"
-    )
+    if general:
+        typer.echo(
+            f"{suite}: {ok}/{len(rows)} trials successful; report {out}/generalization.md, every trial's row "
+            f"with its town {out}/generalization.csv"
+        )
+    else:
+        typer.echo(
+            f"{suite}: {ok}/{len(rows)} trials successful; table {out}/{suite}.md, figure {out}/{suite}.png"
+        )
 
 
 @app.command()

@@ -304,6 +304,7 @@ def run_trial(
         "location_median_m": m.get("location_median_m"),
         "wrong_convergences": m.get("wrong_convergences_count", 0),
         "wrong_convergences_uncaught": m.get("wrong_convergences_uncaught", 0),
+        "wrong_held_max_frames": wrong_held_max_frames(m),
         "false_alarms": m.get("false_alarms_count", 0),
         "vetoed_alarms": s.get("vetoed_alarms", 0),
         "frames_after_convergence": None if conv is None else m["frames"] - (conv - s["first_frame"]),
@@ -318,6 +319,21 @@ def run_trial(
         "calibrated_gyro_bias_deg_s": cal.get("gyro_bias_deg_s"),
     }
     return row
+
+
+def wrong_held_max_frames(metrics: dict) -> int:
+    """The longest that a trial held a wrong convergence, in frames (0 without one): from the frame it was
+    declared (more than 5 m off) to the re-spread that undid it, or to the trial's end when none did (then
+    a lower bound of how long it would have been held). From ``metrics.json``'s events
+    (:func:`rangemcl.evaluation.metrics.convergence_events`)."""
+    end = metrics.get("first_frame", 0) + metrics["frames"]
+    return max(
+        (
+            w["caught_frame"] - w["frame"] if w["caught_frame"] is not None else end - w["frame"]
+            for w in metrics.get("wrong_convergences", ())
+        ),
+        default=0,
+    )
 
 
 def _trial_job(args) -> dict:
@@ -338,6 +354,7 @@ ROW_FIELDS = [f.name for f in fields(Trial) if f.name != "settings"] + [
     "location_median_m",
     "wrong_convergences",
     "wrong_convergences_uncaught",
+    "wrong_held_max_frames",
     "false_alarms",
     "vetoed_alarms",
     "frames_after_convergence",
@@ -356,6 +373,29 @@ def read_results(path: Path) -> list[dict]:
         return []
     with path.open() as fh:
         return list(csv.DictReader(fh))
+
+
+def results_columns(path: Path) -> list[str]:
+    """The columns to append rows of ``path`` (a results.csv) under: :data:`ROW_FIELDS` for a new file;
+    a file written before some of them were added is rewritten once (atomically) with them, its rows
+    empty there, and keeps any columns of its own after them."""
+    if not path.is_file() or path.stat().st_size == 0:
+        return list(ROW_FIELDS)
+    with path.open(newline="") as fh:
+        header = next(csv.reader(fh), [])
+    columns = [*ROW_FIELDS, *(c for c in header if c not in ROW_FIELDS)]
+    if all(c in header for c in ROW_FIELDS):
+        return header  # every column there (in today's order, or another): append under the file's own
+    import io
+
+    from rangemcl.common.atomic import atomic_write
+
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=columns, restval="", extrasaction="ignore")
+    writer.writeheader()
+    writer.writerows(read_results(path))
+    atomic_write(path, text.getvalue())
+    return columns
 
 
 def run_suite(
@@ -396,6 +436,7 @@ def run_suite(
     (out / "drives").mkdir(parents=True, exist_ok=True)
     (out / "trials").mkdir(parents=True, exist_ok=True)
     results_path = out / "results.csv"
+    columns = results_columns(results_path)
     done = {r["key"] for r in read_results(results_path)}
     todo = [t for t in trials if t.key not in done]
     say(f"suite {suite}: {len(trials)} trials, {len(trials) - len(todo)} already done")
@@ -404,18 +445,18 @@ def run_suite(
     _ensure_place_priors(todo, Path(map_dir), device, say)
     threads = max(1, (os.cpu_count() or 1) // workers)
     jobs = [(t, drives[t.drive_key], Path(map_dir), out / "trials", threads, device) for t in todo]
-    new_file = not results_path.is_file()
+    new_file = not results_path.is_file() or results_path.stat().st_size == 0
     with results_path.open("a", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=ROW_FIELDS)
+        writer = csv.DictWriter(fh, fieldnames=columns)
         if new_file:
             writer.writeheader()
             fh.flush()
         for row in _execute(jobs, workers, backend, address):
-            writer.writerow({k: row.get(k) for k in ROW_FIELDS})
+            writer.writerow({k: row.get(k) for k in columns})
             fh.flush()
             os.fsync(fh.fileno())
             verdict = "success" if row["success"] else "failure"
-            say(f"  {row['key']}: {verdict}, RMSE {_fmt(row['location_rmse_m'])} m")
+            say(f"  {row['key']}: {verdict}, RMSE {format_value(row['location_rmse_m'])} m")
     keys = {t.key for t in trials}
     rows = [r for r in read_results(results_path) if r["key"] in keys]
     write_report(suite, rows, out)
@@ -547,7 +588,8 @@ def _execute(jobs, workers: int, backend: str, address: str | None):
 # ---------------------------------------------------------------------------------------------- reports
 
 
-def _num(x) -> float:
+def as_number(x) -> float:
+    """A results.csv cell as a float (NaN when empty or not a number)."""
     try:
         v = float(x)
     except (TypeError, ValueError):
@@ -555,13 +597,14 @@ def _num(x) -> float:
     return v
 
 
-def _truthy(x) -> bool:
+def is_true(x) -> bool:
+    """Whether a results.csv cell says true (``True``, ``true`` or ``1``)."""
     return str(x).lower() in ("true", "1")
 
 
 def _total(rows: list[dict], col: str) -> int | None:
     """Sum of a count column (None when no row has it: rows of earlier versions lack the event counts)."""
-    vals = [_num(r.get(col)) for r in rows if r.get(col) not in ("", None)]
+    vals = [as_number(r.get(col)) for r in rows if r.get(col) not in ("", None)]
     return int(np.sum(vals)) if vals else None
 
 
@@ -578,22 +621,26 @@ def aggregate(rows: list[dict], by: list[str]) -> list[dict]:
         groups.setdefault(tuple(r[k] for k in by), []).append(r)
     out = []
     for key, rs in sorted(
-        groups.items(), key=lambda kv: [(_num(v) if _num(v) == _num(v) else v) for v in kv[0]]
+        groups.items(), key=lambda kv: [(as_number(v) if as_number(v) == as_number(v) else v) for v in kv[0]]
     ):
-        good = [r for r in rs if _truthy(r["success"])]
+        good = [r for r in rs if is_true(r["success"])]
         converged = [r for r in rs if r["frames_to_converge"] not in ("", None)]
-        w = np.array([_num(r["frames_after_convergence"]) for r in good])
-        loc = np.array([_num(r["location_rmse_m"]) for r in good])
-        yaw = np.array([_num(r["yaw_rmse_deg"]) for r in good])
-        med = [_num(r["location_median_m"]) for r in good if r.get("location_median_m") not in ("", None)]
-        conv = [_num(r["frames_to_converge"]) for r in converged]
-        hz = [_num(r["hz_after"]) for r in rs if r["hz_after"] not in ("", None)]
+        w = np.array([as_number(r["frames_after_convergence"]) for r in good])
+        loc = np.array([as_number(r["location_rmse_m"]) for r in good])
+        yaw = np.array([as_number(r["yaw_rmse_deg"]) for r in good])
+        med = [
+            as_number(r["location_median_m"]) for r in good if r.get("location_median_m") not in ("", None)
+        ]
+        conv = [as_number(r["frames_to_converge"]) for r in converged]
+        hz = [as_number(r["hz_after"]) for r in rs if r["hz_after"] not in ("", None)]
         before = [
-            _num(r["seconds_per_frame_before"]) for r in rs if r["seconds_per_frame_before"] not in ("", None)
+            as_number(r["seconds_per_frame_before"])
+            for r in rs
+            if r["seconds_per_frame_before"] not in ("", None)
         ]
 
         reloc = [
-            _num(r["relocalized_after_frames"])
+            as_number(r["relocalized_after_frames"])
             for r in rs
             if r.get("relocalized_after_frames") not in ("", None)
         ]
@@ -629,12 +676,16 @@ def aggregate(rows: list[dict], by: list[str]) -> list[dict]:
                 # the odometry the trials ran with: distance error in per cent (median over the trials),
                 # and what is left of it after the filter's calibration (median of its absolute value)
                 "odometry_error_pct": _median_of(
-                    rs, lambda r: 100.0 * (_num(r.get("odometry_wheel_scale")) - 1)
+                    rs, lambda r: 100.0 * (as_number(r.get("odometry_wheel_scale")) - 1)
                 ),
                 "calibrated_error_pct": _median_of(
                     rs,
                     lambda r: (
-                        100.0 * abs(_num(r.get("odometry_wheel_scale")) * _num(r.get("calibrated_scale")) - 1)
+                        100.0
+                        * abs(
+                            as_number(r.get("odometry_wheel_scale")) * as_number(r.get("calibrated_scale"))
+                            - 1
+                        )
                     ),
                 ),
             }
@@ -642,7 +693,8 @@ def aggregate(rows: list[dict], by: list[str]) -> list[dict]:
     return out
 
 
-def _fmt(x, digits=3) -> str:
+def format_value(x, digits=3) -> str:
+    """A table cell: ``–`` for a missing value (None, NaN), floats with ``digits`` decimals."""
     return (
         "–"
         if x is None or (isinstance(x, float) and x != x)
@@ -715,7 +767,7 @@ def write_report(suite: str, rows: list[dict], out: Path) -> tuple[Path, Path]:
     lines.append("| " + " | ".join(cols) + " |")
     lines.append("|" + "---|" * len(cols))
     for a in agg:
-        lines.append("| " + " | ".join(_fmt(a.get(c)) for c in cols) + " |")
+        lines.append("| " + " | ".join(format_value(a.get(c)) for c in cols) + " |")
     md = out / f"{suite}.md"
     md.write_text("\n".join(lines) + "\n")
 
@@ -724,7 +776,9 @@ def write_report(suite: str, rows: list[dict], out: Path) -> tuple[Path, Path]:
         names = sorted({a["model"] for a in agg})
         for i, model in enumerate(names):
             pts = sorted(
-                (int(_num(a["particles"])), a["successes"], a["trials"]) for a in agg if a["model"] == model
+                (int(as_number(a["particles"])), a["successes"], a["trials"])
+                for a in agg
+                if a["model"] == model
             )
             shift = 1.0 + 0.04 * (i - (len(names) - 1) / 2)  # side by side where the rates coincide
             ax.plot(
