@@ -275,6 +275,9 @@ def build_localizer(
         min_search_particles=c.min_search_particles,
         polish_hypotheses=c.polish_hypotheses,
         polish_keep=c.polish_keep,
+        challenge_top=c.challenge_top,
+        challenge_places=c.challenge_places,
+        challenge_updates=c.challenge_updates,
     )
 
 

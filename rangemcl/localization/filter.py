@@ -101,6 +101,7 @@ class StepInfo:
     evidence_nats: float = math.nan  # the leader's log weight share over the runner-up's (searching)
     inliers: float = math.nan  # the best particle's inlier share (models that report it)
     converged_now: bool = False  # convergence was declared at this update
+    challenged: int = 0  # places that the search's challenge added to the cloud at this update
     vetoed: bool = False  # a lost suspicion at this update was vetoed by the second opinion
     refined: int = 0  # scan-to-mesh refinement at this update: 1 taken, -1 refused, 0 not tried
     refine_shift_m: float = math.nan  # the refinement's correction (x, y), taken or refused
@@ -205,6 +206,9 @@ class MonteCarloLocalizer(SearchMixin, RecoveryMixin):
         min_search_particles: int,
         polish_hypotheses: int,
         polish_keep: int,
+        challenge_top: int,
+        challenge_places: int,
+        challenge_updates: int,
     ):
         if convergence not in ("hypotheses", "tiles"):
             raise InputError(f"convergence {convergence!r}: expected 'hypotheses' or 'tiles'")
@@ -271,6 +275,9 @@ class MonteCarloLocalizer(SearchMixin, RecoveryMixin):
         self.min_search_particles = int(min_search_particles)
         self.polish_hypotheses = int(polish_hypotheses)
         self.polish_keep = int(polish_keep)
+        self.challenge_top = int(challenge_top)
+        self.challenge_places = int(challenge_places)
+        self.challenge_updates = int(challenge_updates)
         self.convergence_test = ConvergenceTest(margin_nats, min_distance_m, compact_radius_m, separation_m)
 
         self.prior: PlacePrior | None = None
@@ -298,10 +305,14 @@ class MonteCarloLocalizer(SearchMixin, RecoveryMixin):
         # the recent updates' rays (None: no scan) and odometry since the update before, oldest first, for
         # the second opinion's look at the past (LostDetector.history_updates; None when that is off),
         # and before them as many as a suspicion may last (max_vetoed_updates), whose scans it leaves out
-        keep = lost is not None and lost.history_updates > 0
+        # the search's challenge to its leader compares places over the same store's last challenge_updates
+        history = lost.history_updates + 1 + lost.max_vetoed_updates if lost is not None else 0
+        challenge = self.challenge_updates + 1 if self.challenge_places > 0 and self.challenge_top > 0 else 0
         self._recent: deque | None = None
-        if keep:
-            self._recent = deque(maxlen=lost.history_updates + 1 + lost.max_vetoed_updates)
+        if (lost is not None and lost.history_updates > 0) or challenge > 0:
+            self._recent = deque(maxlen=max(history, challenge))
+        self._since_spread = 0  # updates since the last spread: the window of the search's challenge
+        self._challenges_left = 0  # probation updates left in which the converged pose is challenged
         self.hypotheses: list = []  # the search's clusters at the last update, largest share first
 
     # --- the tracking's state, as the filter's (read by the run's summary and the tools) ------------------
@@ -415,6 +426,8 @@ class MonteCarloLocalizer(SearchMixin, RecoveryMixin):
             )
         )
         self.converged = False
+        self._since_spread = 0
+        self._challenges_left = 0
         self.tracking.stop()
         self._prior_pending = self.use_prior
         if self._prior_pending:
@@ -523,7 +536,8 @@ class MonteCarloLocalizer(SearchMixin, RecoveryMixin):
         if self._update_due():
             rays = self._select_rays(points, delta, fire_time_s, frame_period_s, roll_pitch)
             self._move()
-            self._remember(rays)  # for the second opinion's look at the past
+            self._remember(rays)  # for the second opinion's look at the past and the search's challenge
+            self._since_spread += 1
             if rays is None:
                 info["skipped_scan"] = True
             else:

@@ -29,7 +29,7 @@ import numpy as np
 
 from rangemcl.localization.lost import Opinion, Polish, candidate_particles, history_fit, second_opinion
 from rangemcl.localization.scan_prep import ScanRays
-from rangemcl.se2 import se2_compose, se2_inverse
+from rangemcl.se2 import se2_compose, se2_inverse, wrap_angle
 
 
 class RecoveryMixin:
@@ -50,6 +50,7 @@ class RecoveryMixin:
     def _start_probation(self) -> None:
         if self.lost is not None:
             self.lost.start_probation()
+            self._challenges_left = self.lost.probation_updates
 
     def _watch(
         self, rays: ScanRays, level: Callable[[], np.ndarray] | None, best: float, inliers: float
@@ -59,6 +60,14 @@ class RecoveryMixin:
         gives (levelled on demand; None, or without the place prior: none). Lost: the particles are spread
         again (a recovery). Returns the :class:`~rangemcl.localization.filter.StepInfo` fields ``vetoed``
         and, after a recovery, ``recovered``."""
+        if self._challenges_left > 0 and self.use_prior and level is not None:
+            self._challenges_left -= 1
+            own = self.particles[int(np.argmax(self.log_w))]
+            better = self._challenge(level(), own, self.last_estimate, 0.0)
+            if better is not None:
+                self.recoveries += 1
+                self._reopen(*better)
+                return dict(vetoed=False, recovered=True)
         opinion = (
             (lambda rival, gain: self._second_opinion(rays, level(), rival, gain))
             if self.use_prior and level is not None
@@ -70,6 +79,26 @@ class RecoveryMixin:
         self.recoveries += 1
         self.spread(max(self._spread_count, self.global_count))
         return dict(vetoed=vetoed, recovered=True)
+
+    def _reopen(self, poses: np.ndarray, gap: np.ndarray) -> None:
+        """The probation's challenge found places ``poses`` ``(K, 3)`` that explain the recent scans better
+        than the converged cloud (by ``gap`` nats): the search takes up again, the cloud one hypothesis
+        and each place another (``min_cluster_particles`` particles) with the weight its evidence gives it.
+        Not a spread: what the scans have told is kept, and the sequential test decides again."""
+        m = self.min_cluster_particles
+        fresh = np.repeat(np.asarray(poses, np.float64).reshape(-1, 3), m, axis=0)
+        sxy, syaw = self.global_jitter[0], math.radians(self.global_jitter[1])
+        fresh[:, :2] += self.rng.normal(0.0, sxy, (len(fresh), 2))
+        fresh[:, 2] = wrap_angle(fresh[:, 2] + self.rng.normal(0.0, syaw, len(fresh)))
+        own = np.log(np.maximum(self.weights, 1e-300))
+        self.particles = np.vstack([self.particles, fresh])
+        self.log_w = np.concatenate([own, np.repeat(np.asarray(gap, np.float64) - math.log(m), m)])
+        self.converged = False
+        self._challenges_left = 0
+        self.tracking.stop()
+        self.convergence_test.reset()
+        self._leader = None
+        self.lost.reset()
 
     def _second_opinion(
         self, rays: ScanRays, levelled: np.ndarray, rival: np.ndarray | None, inlier_gain: float
@@ -132,6 +161,7 @@ class RecoveryMixin:
         if (
             found.better
             and self._recent is not None
+            and lost.history_updates > 0
             and own_inl is not None
             and float(own_inl[j]) >= lost.history_min_inliers
         ):

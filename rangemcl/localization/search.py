@@ -9,6 +9,15 @@
   hypotheses, the sequential test decides whether the leader has won (and fits), else the cloud is
   resampled cluster by cluster to the KLD size and particles from the prior are injected; with
   ``convergence="tiles"``, the paper's rule instead (all particles in ``tiles`` tiles).
+* **The challenge**: before a winner converges, the place prior's best places for the scan challenge it
+  (:meth:`SearchMixin._challenge`). The sequential test weighs the leader against the rivals the cloud
+  holds; a look-alike that was never drawn, or was dropped while its particles lay off its likelihood's
+  peak, is not among them, and the leader then wins by a margin over places that never were its match
+  (on two identical streets, the search converges on the wrong one when the cloud has lost the other
+  street's copy of the true place). Each challenger is searched with the polish's grids, as is the
+  leader, and both are judged by the same evidence: the log-likelihood summed over the recent scans,
+  each place moved back along the odometry. A challenger within the test's margin joins the cloud with
+  the weight that evidence gives it, and the search goes on.
 * **Convergence**: the winner's particles are resampled to ``converged_count`` and the filter's
   convergence (:meth:`MonteCarloLocalizer._converge`) hands over to the tracking.
 
@@ -18,9 +27,10 @@ by cluster, each particle's descent from the leading cluster kept in step with i
 filter's place prior and generator, scores with its observation model and ends in the filter's own
 convergence, so its state does not separate from the filter's. What it reads of the filter: the cloud
 (``particles``, ``log_w``, ``weights``, ``last_estimate``), ``scorer``, ``sensor_z``, ``rng``, ``map``,
-``prior_for`` and ``_elevations``, ``_moved_m`` and ``_spread_count``, and the search's settings that the
-constructor stores (convergence, particles and place-prior keys); what it keeps: ``hypotheses``,
-``convergence_test``, ``_leader`` and ``_prior_pending``.
+``prior_for`` and ``_elevations``, ``_moved_m`` and ``_spread_count``, the recent updates' rays and odometry
+(``_recent``, ``_since_spread``), and the search's settings that the constructor stores (convergence,
+particles and place-prior keys); what it keeps: ``hypotheses``, ``convergence_test``, ``_leader`` and
+``_prior_pending``.
 """
 
 from __future__ import annotations
@@ -36,6 +46,7 @@ from rangemcl.localization.hypotheses import (
     resample_by_cluster,
     summarize,
 )
+from rangemcl.localization.lost import Polish, candidate_particles
 from rangemcl.localization.particles import (
     effective_sample_size,
     low_variance_resample,
@@ -43,7 +54,7 @@ from rangemcl.localization.particles import (
     resample_roughened,
 )
 from rangemcl.localization.scan_prep import ScanRays
-from rangemcl.se2 import wrap_angle
+from rangemcl.se2 import se2_compose, se2_inverse, wrap_angle
 
 # the search's polish of its heaviest hypotheses (SearchMixin._polish_hypotheses): a coarse grid (half
 # width and step in metres along and across the seed's heading, then in degrees of yaw) and a fine one
@@ -51,6 +62,8 @@ from rangemcl.se2 import wrap_angle
 POLISH_COARSE = (2.0, 0.5, 8.0, 2.0)
 POLISH_FINE = (0.4, 0.2, 1.5, 0.5)
 POLISH_COARSE_RAYS_EVERY = 3  # the coarse grid is scored on every third ray
+CHALLENGE_PER_PLACE = 16  # particles scored on each challenging place (a grid over its prior cell)
+CHALLENGE_APART_M = 3.0  # the challengers that are searched lie at least this far apart
 
 
 class SearchMixin:
@@ -198,6 +211,12 @@ class SearchMixin:
         if won and inl is not None and len(inl) == len(labels):
             # the winner must also fit: a place that merely fits less badly than the rest has not won
             won = float(inl[labels == best.label].max()) >= self.min_inliers
+        challengers = None
+        if won:
+            inside = np.flatnonzero(labels == best.label)
+            own = self.particles[inside[int(np.argmax(self.log_w[inside]))]]
+            challengers = self._challenge(levelled, own, best.centroid, self.convergence_test.margin_nats)
+            won = challengers is None
         margin = self.convergence_test.margin
         out = dict(resampled=True, hypotheses=len(hyps), evidence_nats=margin)
         self.last_estimate = best.centroid.copy()  # while searching, the leading hypothesis
@@ -239,8 +258,89 @@ class SearchMixin:
                 each = math.log(max(self.inject_share, 1e-300) / k)
                 logw = np.concatenate([logw + math.log1p(-share), np.full(len(fresh), each)])
                 leader = np.concatenate([leader, np.zeros(len(fresh), bool)])
+        if challengers is not None:  # each joins with its evidence against the leader's share
+            poses, gap = challengers
+            m = self.min_cluster_particles
+            lead = math.log(max(best.share, 1e-300)) - math.log(sum(h.share for h in keep))
+            fresh = np.repeat(poses, m, axis=0)
+            fresh[:, :2] += self.rng.normal(0.0, sxy, (len(fresh), 2))
+            fresh[:, 2] = wrap_angle(fresh[:, 2] + self.rng.normal(0.0, syaw, len(fresh)))
+            parts = np.vstack([parts, fresh])
+            logw = np.concatenate([logw, np.repeat(lead + gap - math.log(m), m)])
+            leader = np.concatenate([leader, np.zeros(len(fresh), bool)])
+            out["challenged"] = len(poses)
         self.particles, self.log_w, self._leader = parts, logw, leader
         return out
+
+    # --- the challenge ------------------------------------------------------------------------------------
+
+    def _challenge(
+        self, levelled: np.ndarray | None, own: np.ndarray, centre: np.ndarray, beat_by_nats: float
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Is there a place that the pose ``own`` (the leader's heaviest particle; a converged filter's best)
+        does not beat by ``beat_by_nats``? The place prior's best ``challenge_top`` places for this update's
+        scan, farther than ``separation_m`` from ``centre``, are scored with a few particles each; the best
+        ``challenge_places`` distinct ones and ``own`` are searched around with the polish's grids, and
+        each grid's best pose is judged by its log-likelihood summed over the last ``challenge_updates``
+        scans (:meth:`_window_loglik`). Returns None when ``own`` beats every challenger by
+        ``beat_by_nats`` (or there is nothing to challenge it with: no prior, too little in the scan to
+        match, no recent scans), else the challengers that it does not beat: their poses ``(K, 3)`` and
+        their evidence less its own ``(K,)``, in nats."""
+        if (
+            self.challenge_places <= 0
+            or self.challenge_top <= 0
+            or not self.use_prior
+            or levelled is None
+            or not self._recent
+            or self._recent[-1][0] is None
+        ):
+            return None
+        rays = self._recent[-1][0]
+        prior = self.prior_for(levelled)
+        xy, yaw, _cost, known = prior.candidates(
+            levelled, self.sensor_height_m, self.challenge_top, self._elevations(prior, levelled)
+        )
+        if known < max(8, prior.params.bins // 20):
+            return None
+        far = np.hypot(xy[:, 0] - centre[0], xy[:, 1] - centre[1]) > self.separation_m
+        xy, yaw = xy[far], yaw[far]
+        consult = getattr(self.map, "consult", None)  # a map within a budget: only the places held
+        if consult is not None and len(xy):
+            held = consult(xy)
+            xy, yaw = xy[held], yaw[held]
+        if len(xy) == 0:
+            return None
+        cand = candidate_particles(
+            xy, yaw, CHALLENGE_PER_PLACE, prior.params.cell_m, self.prior_yaw_sigma, self.rng
+        )
+        ll, _bad = self.scorer.score(rays, cand, self.sensor_z(cand[:, :2]))
+        picker = Polish(self.challenge_places, 1, 0.0, 0.0, self.rng, min_apart_m=CHALLENGE_APART_M)
+        seeds = picker.seeds(cand[np.argsort(-ll, kind="stable")])
+        p, gll, _b, _i = self._polish_grids(rays, np.vstack([np.asarray(own)[None], seeds]))
+        peaks = p[np.arange(len(p)), np.argmax(gll, axis=1)]
+        evidence = self._window_loglik(peaks)
+        gap = evidence[1:] - evidence[0]
+        apart = np.hypot(peaks[1:, 0] - peaks[0, 0], peaks[1:, 1] - peaks[0, 1]) > self.separation_m
+        close = apart & (gap > -beat_by_nats)
+        if not close.any():
+            return None
+        return peaks[1:][close], gap[close]
+
+    def _window_loglik(self, poses: np.ndarray) -> np.ndarray:
+        """Each pose's ``(K, 3)`` log-likelihood summed over the scans of the last ``challenge_updates``
+        updates since the search began (the current one included), the pose moved back along the
+        odometry to each of them (updates without a scan add nothing)."""
+        p = np.asarray(poses, np.float64).reshape(-1, 3).copy()
+        total = np.zeros(len(p))
+        entries = list(self._recent)
+        n = min(self.challenge_updates, self._since_spread, len(entries))
+        for i in range(len(entries) - 1, len(entries) - 1 - n, -1):
+            rays, motion = entries[i]
+            if rays is not None:
+                ll, _bad = self.scorer.score(rays, p, self.sensor_z(p[:, :2]))
+                total += ll
+            p = se2_compose(p, se2_inverse(motion))  # the pose at the update before
+        return total
 
     def _tiles_update(self, w: np.ndarray) -> dict:
         """One update under the paper's rule: converged when :meth:`_tiles_converged`, else resampled when

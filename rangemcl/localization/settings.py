@@ -264,6 +264,29 @@ class ConvergenceSettings:
     """`method: hypotheses`: the best this many poses (at least 1) of each polished hypothesis's fine grid
     join the cloud. The range likelihood is sharply peaked, so without the polish a place is judged by
     particles off its peak; more poses hold the peak's neighbourhood too, at the cost of a larger cloud."""
+    challenge_top: int = 0
+    """`method: hypotheses`: before the search converges, the place prior's best this many (cell, yaw)
+    places for the scan challenge the leader (those farther than `separation_m` from it), and through the
+    recovery's probation after it converged (`recovery.probation_updates`) they challenge the converged
+    pose: a place that explains the recent scans better reopens the search, the converged cloud and that
+    place each a hypothesis with the weight its evidence gives it. The test's margin is measured against
+    the rivals the cloud holds; a look-alike that the cloud never drew, or lost while its particles lay
+    off its likelihood's peak, is no rival to it, and a leader can win by many nats over places that were
+    never its match. 0 (the default): no challenge; `configs/challenge.yaml` turns it on (100)."""
+    challenge_places: int = 16
+    """`method: hypotheses`: the best this many distinct challengers (3 m apart) are searched around
+    with the polish's grids, as the leader is, and compared with it over the recent scans
+    (`challenge_updates`). One within `margin_nats` of the leader (or better) joins the cloud as a
+    hypothesis of its own, with the weight that evidence gives it, and the search goes on. 0: no
+    challenge."""
+    challenge_updates: int = 100
+    """`method: hypotheses`: the challenge's evidence: the log-likelihood summed over this many updates'
+    scans (those since the search began, if fewer), each place moved back along the odometry to each of
+    them; the same measure for the leader and every challenger, so that it does not depend on how many
+    particles a place holds or how near its peak they lie. It should reach back as far as the search
+    does: a challenger is judged by these scans alone, and a leader that beats a look-alike by little
+    per scan needs many of them to beat it by `margin_nats` (the scans are kept in memory, a few kB
+    each)."""
 
 
 @dataclass
@@ -633,6 +656,8 @@ _RULES: dict[str, str] = {
             "convergence.min_distance_m",
             "convergence.prune_nats",
             "convergence.polish_hypotheses",
+            "convergence.challenge_top",
+            "convergence.challenge_places",
             "convergence.separation_m",
             "recovery.factor",
             "recovery.inlier_factor",
@@ -676,6 +701,7 @@ _RULES: dict[str, str] = {
     "particles.estimate_best_share": "in (0, 1]",
     "recovery.saturated_badness_ratio": "in (0, 1)",
     "recovery.history_updates": "an integer >= 0",
+    "convergence.challenge_updates": "an integer >= 0",
     "motion.gyro_bias_deg_s": "finite",
 }
 _RULE_TESTS = {

@@ -191,7 +191,10 @@ def test_the_look_at_the_past_moves_poses_back_along_the_odometry(world, tmp_pat
     loc, s = _tracking_with_history(world, 20, 1, 5)
     assert np.isnan(loc._history_inliers(path[5][None])).all()  # 5 past scans of the 20: no verdict
     _drive(loc, world, 6, 39)
-    assert len(loc._recent) == 39 and loc._recent.maxlen == 21 + s.recovery.max_vetoed_updates
+    # (kept as long as the look at the past or the search's challenge reaches back, whichever is longer)
+    assert len(loc._recent) == 39
+    challenge = s.convergence.challenge_updates + 1 if s.convergence.challenge_top > 0 else 0
+    assert loc._recent.maxlen == max(21 + s.recovery.max_vetoed_updates, challenge)
     fit = loc._history_inliers(np.array([path[39], path[39] + [0.0, 3.0, 0.0], path[39] + [0.0, 0.0, 0.1]]))
     assert fit[0] > 0.9 and fit[1] < fit[0] - 0.2 and fit[2] < fit[0] - 0.2
     # a checkpoint (rangemcl localize --resume) holds the kept updates: the same verdicts after a restore
@@ -200,9 +203,10 @@ def test_the_look_at_the_past_moves_poses_back_along_the_odometry(world, tmp_pat
     restore_state(tmp_path / "state.npz", {"filter": again})
     assert again._recent.maxlen == loc._recent.maxlen and len(again._recent) == 39
     assert np.array_equal(again._history_inliers(path[39][None]), fit[:1])
-    # off: nothing kept
+    # off, and no challenge either: nothing kept
     s_off = small_settings()
     s_off.recovery.history_updates = 0
+    s_off.convergence.challenge_top = 0
     off = build_localizer(m, s_off, seed=3, caster=caster)
     off.start_at(path[0])
     off.step(se2_between(path[0], path[1]), scan_at(town, caster, geo, path[1]))
