@@ -331,7 +331,7 @@ def trials(
     from dataclasses import replace
 
     from rangemcl.errors import InputError
-    from simbed.trials.suites import SUITES, SuiteConfig, run_suite, suite_settings
+    from simbed.trials.suites import SUITES, run_suite
 
     general = suite == "generalization"
     if suite not in (*SUITES, "generalization"):
@@ -360,45 +360,15 @@ def trials(
         "--styles": styles,
     }
     if general:
-        from simbed.trials.generalization import MARKERS, generalization_settings
-
-        for option, value in (
-            ("--map", map_dir),
-            ("--scene", scene),
-            ("--counts", counts),
-            ("--models", models),
-        ):
-            if value is not None:
-                raise InputError(
-                    f"{option}: not for suite 'generalization' (it draws its towns and maps them)"
-                )
-        gen = generalization_settings(
-            quick,
-            towns=towns,
-            town_seeds=None if town_seeds is None else _int_list(town_seeds, "--town-seeds"),
-            sizes=sizes,
-            styles=styles,
-            mapping_sensor=sensor,
-            suite=given,
-        )
+        others_given = {"--map": map_dir, "--scene": scene, "--counts": counts, "--models": models}
+        gen = _generalization_settings(quick, sensor, given, others_given, draw)
         base = gen.suite
     else:
-        option = next((o for o, v in draw.items() if v is not None), None)
-        if option is not None:
-            raise InputError(f"{option}: only for suite 'generalization'")
-        if map_dir is None and not report_only:
-            raise InputError(f"--map: suite {suite!r} needs the scene's map folder (rangemcl build-map)")
+        _check_suite_options(suite, draw, map_dir, report_only)
+        from simbed.trials.suites import SuiteConfig
+
         base = SuiteConfig(**given)
-    suite_config = (
-        base if config is None else replace(base, settings=suite_settings(config), method=config.stem)
-    )
-    others = tuple(
-        replace(suite_config, settings="", method="default")
-        if c == "default"
-        else replace(suite_config, settings=suite_settings(Path(c)), method=Path(c).stem)
-        for c in compare or ()
-    )
-    from rangemcl.common.outdir import check_output, output_folder
+    suite_config, others = _methods(base, config, compare)
 
     def run():
         if general:
@@ -431,22 +401,7 @@ def trials(
             compare=others,
         )
 
-    markers = MARKERS if general else ("results.csv", "drives", "trials")
-    if report_only and overwrite:
-        raise InputError("--report-only reads the suite folder, --overwrite replaces it: give one of them")
-    if report_only:
-        rows = run()
-    elif not overwrite and any((Path(out) / m).exists() for m in markers):
-        check_output(out, overwrite=True, kind="suite results", markers=markers)  # writable, ours
-        typer.echo(f"continuing the suite folder {out} (--overwrite starts it over)")
-        rows = run()
-    else:  # a new folder, or --overwrite: rangemcl.common.outdir's policy (nothing left by a failed start)
-        if general:  # a run that recorded its towns is kept, to continue
-            keep = lambda p: (p / markers[0]).is_file()  # noqa: E731
-        else:
-            keep = lambda p: (p / "results.csv").is_file() or any((p / "drives").glob("*/meta.yaml"))  # noqa: E731
-        with output_folder(out, overwrite=overwrite, kind="suite results", markers=markers, keep_if=keep):
-            rows = run()
+    rows = _in_suite_folder(out, general, report_only, overwrite, run)
     ok = sum(str(r["success"]).lower() == "true" for r in rows)
     if general:
         typer.echo(
@@ -457,6 +412,83 @@ def trials(
         typer.echo(
             f"{suite}: {ok}/{len(rows)} trials successful; table {out}/{suite}.md, figure {out}/{suite}.png"
         )
+
+
+def _generalization_settings(quick: bool, sensor, given: dict, refused: dict, draw: dict):
+    """The generalization suite's settings from the ``trials`` options (``refused``: options it does not
+    take, by name; ``draw``: the town draw's options)."""
+    from rangemcl.errors import InputError
+    from simbed.trials.generalization import generalization_settings
+
+    for option, value in refused.items():
+        if value is not None:
+            raise InputError(f"{option}: not for suite 'generalization' (it draws its towns and maps them)")
+    seeds = draw["--town-seeds"]
+    return generalization_settings(
+        quick,
+        towns=draw["--towns"],
+        town_seeds=None if seeds is None else _int_list(seeds, "--town-seeds"),
+        sizes=draw["--sizes"],
+        styles=draw["--styles"],
+        mapping_sensor=sensor,
+        suite=given,
+    )
+
+
+def _check_suite_options(suite: str, draw: dict, map_dir, report_only: bool) -> None:
+    """A suite in one scene: no town draw's options, and a map unless it only reports."""
+    from rangemcl.errors import InputError
+
+    option = next((o for o, v in draw.items() if v is not None), None)
+    if option is not None:
+        raise InputError(f"{option}: only for suite 'generalization'")
+    if map_dir is None and not report_only:
+        raise InputError(f"--map: suite {suite!r} needs the scene's map folder (rangemcl build-map)")
+
+
+def _methods(base, config: Path | None, compare: list[str] | None):
+    """The suite's configuration with ``--config``'s localizer settings, and one per ``--compare``."""
+    from dataclasses import replace
+
+    from simbed.trials.suites import suite_settings
+
+    suite_config = (
+        base if config is None else replace(base, settings=suite_settings(config), method=config.stem)
+    )
+    others = tuple(
+        replace(suite_config, settings="", method="default")
+        if c == "default"
+        else replace(suite_config, settings=suite_settings(Path(c)), method=Path(c).stem)
+        for c in compare or ()
+    )
+    return suite_config, others
+
+
+def _in_suite_folder(out: Path, general: bool, report_only: bool, overwrite: bool, run) -> list[dict]:
+    """``run()`` in the suite folder ``out`` under rangemcl.common.outdir's policy: a folder of an earlier
+    run is continued (or started over with ``overwrite``), a new one removed again if the run fails before
+    it has anything worth keeping."""
+    from rangemcl.common.outdir import check_output, output_folder
+    from rangemcl.errors import InputError
+
+    if general:
+        from simbed.trials.generalization import MARKERS as markers
+    else:
+        markers = ("results.csv", "drives", "trials")
+    if report_only and overwrite:
+        raise InputError("--report-only reads the suite folder, --overwrite replaces it: give one of them")
+    if report_only:
+        return run()
+    if not overwrite and any((Path(out) / m).exists() for m in markers):
+        check_output(out, overwrite=True, kind="suite results", markers=markers)  # writable, ours
+        typer.echo(f"continuing the suite folder {out} (--overwrite starts it over)")
+        return run()
+    if general:  # a run that recorded its towns is kept, to continue
+        keep = lambda p: (p / markers[0]).is_file()  # noqa: E731
+    else:
+        keep = lambda p: (p / "results.csv").is_file() or any((p / "drives").glob("*/meta.yaml"))  # noqa: E731
+    with output_folder(out, overwrite=overwrite, kind="suite results", markers=markers, keep_if=keep):
+        return run()
 
 
 @app.command()

@@ -209,7 +209,7 @@ CASES: list[tuple[str, list[str], dict]] = [
     ("rangemcl map-info {d}/map --bogus", ["No such option", "--bogus"], {}),
     ("simbed record --out {d}/o --actors many", ["--actors", "integer", "'simbed record --help'"], {}),
     ("simbed make-town --out {d}/t.xml --size big", ["--size", "'simbed make-town --help'"], {}),
-    ("simbed trials runtime --out {d}/t", ["Missing option", "--map"], {}),
+    ("simbed trials runtime --out {d}/t", ["--map: suite 'runtime' needs the scene's map folder"], {}),
     # --- rangemcl sensors
     ("rangemcl sensors os1-65", ["unknown LiDAR preset", "os1-65"], {}),
     ("rangemcl sensors {d}/s.yaml", ["s.yaml", "malformed YAML", "line 2"], {"s.yaml": "name: x\n  a: [\n"}),
