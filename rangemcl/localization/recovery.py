@@ -29,7 +29,7 @@ import numpy as np
 
 from rangemcl.localization.lost import Opinion, Polish, candidate_particles, history_fit, second_opinion
 from rangemcl.localization.scan_prep import ScanRays
-from rangemcl.se2 import se2_compose, se2_inverse, wrap_angle
+from rangemcl.se2 import se2_compose, se2_inverse
 
 
 class RecoveryMixin:
@@ -50,7 +50,8 @@ class RecoveryMixin:
     def _start_probation(self) -> None:
         if self.lost is not None:
             self.lost.start_probation()
-            self._challenges_left = self.lost.probation_updates
+            challenge = self.challenge_top > 0 and self.challenge_places > 0
+            self._challenges_left = self.lost.probation_updates if challenge else 0
 
     def _watch(
         self, rays: ScanRays, level: Callable[[], np.ndarray] | None, best: float, inliers: float
@@ -86,10 +87,7 @@ class RecoveryMixin:
         and each place another (``min_cluster_particles`` particles) with the weight its evidence gives it.
         Not a spread: what the scans have told is kept, and the sequential test decides again."""
         m = self.min_cluster_particles
-        fresh = np.repeat(np.asarray(poses, np.float64).reshape(-1, 3), m, axis=0)
-        sxy, syaw = self.global_jitter[0], math.radians(self.global_jitter[1])
-        fresh[:, :2] += self.rng.normal(0.0, sxy, (len(fresh), 2))
-        fresh[:, 2] = wrap_angle(fresh[:, 2] + self.rng.normal(0.0, syaw, len(fresh)))
+        fresh = self._around_challengers(poses)
         own = np.log(np.maximum(self.weights, 1e-300))
         self.particles = np.vstack([self.particles, fresh])
         self.log_w = np.concatenate([own, np.repeat(np.asarray(gap, np.float64) - math.log(m), m)])

@@ -262,9 +262,7 @@ class SearchMixin:
             poses, gap = challengers
             m = self.min_cluster_particles
             lead = math.log(max(best.share, 1e-300)) - math.log(sum(h.share for h in keep))
-            fresh = np.repeat(poses, m, axis=0)
-            fresh[:, :2] += self.rng.normal(0.0, sxy, (len(fresh), 2))
-            fresh[:, 2] = wrap_angle(fresh[:, 2] + self.rng.normal(0.0, syaw, len(fresh)))
+            fresh = self._around_challengers(poses)
             parts = np.vstack([parts, fresh])
             logw = np.concatenate([logw, np.repeat(lead + gap - math.log(m), m)])
             leader = np.concatenate([leader, np.zeros(len(fresh), bool)])
@@ -325,6 +323,15 @@ class SearchMixin:
         if not close.any():
             return None
         return peaks[1:][close], gap[close]
+
+    def _around_challengers(self, poses: np.ndarray) -> np.ndarray:
+        """``min_cluster_particles`` particles on each challenger ``(K, 3)``, roughened with the search's
+        jitter (``global_jitter``): a hypothesis of its own in the cloud."""
+        fresh = np.repeat(np.asarray(poses, np.float64).reshape(-1, 3), self.min_cluster_particles, axis=0)
+        sxy, syaw = self.global_jitter[0], math.radians(self.global_jitter[1])
+        fresh[:, :2] += self.rng.normal(0.0, sxy, (len(fresh), 2))
+        fresh[:, 2] = wrap_angle(fresh[:, 2] + self.rng.normal(0.0, syaw, len(fresh)))
+        return fresh
 
     def _window_loglik(self, poses: np.ndarray) -> np.ndarray:
         """Each pose's ``(K, 3)`` log-likelihood summed over the scans of the last ``challenge_updates``
