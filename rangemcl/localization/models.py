@@ -380,9 +380,10 @@ def make_model(name: str, caster, settings, mesh_map) -> ScoringModel:
     o = settings
     cap = np.inf if o.cap_m is None else o.cap_m
     beyond = cap if o.cap_beyond_m is None else o.cap_beyond_m
+    short = cap if o.cap_short_m is None else o.cap_short_m
     if name == "range":
         return RangeModel(
-            ParticleRenderer(caster, margin_m=o.margin_m, cap_m=cap, cap_beyond_m=beyond),
+            ParticleRenderer(caster, margin_m=o.margin_m, cap_m=cap, cap_beyond_m=beyond, cap_short_m=short),
             o.sigma_m,
         )
     if name == "overlap":

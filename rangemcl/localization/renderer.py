@@ -44,6 +44,7 @@ def particle_residual_kernel(
     margin: float,
     cap: float,
     cap_beyond: float,  # cost of a ray measured more than cap beyond the map's surface (a removed object)
+    cap_short: float,  # at most this cost for a ray measured short of the map's surface (an added object)
     tau: float,  # a ray agrees when its residual is below tau
     hist_top: float,  # rendered ranges binned into out_hist's columns over [0, hist_top)
     offset: int,
@@ -74,11 +75,14 @@ def particle_residual_kernel(
         limit = measured[i] + margin
         t, m, _face, _normal = closest_hit(meshes, inv_poses, moved, boxes, ow, dw, limit)
         r = float(margin)
-        lim = cap
+        lim = cap_short  # a miss: the scan met something where the map has nothing, an added object
         far = structure[i]  # a miss: the scan met something where the map has nothing (or wrong pose)
         if m >= 0:
             e = measured[i] - t
             r = wp.abs(e)
+            lim = cap
+            if e < 0.0:  # in front of the map's surface: an object the map lacks, or a wrong pose
+                lim = cap_short
             if e > tau:
                 beyond += 1.0
             if e > cap:  # far beyond the map's surface: a removed object, not a small pose error
@@ -124,17 +128,22 @@ class ParticleRenderer:
         margin_m: float = 2.0,
         cap_m: float = np.inf,
         cap_beyond_m: float | None = None,
+        cap_short_m: float | None = None,
     ):
         if cap_beyond_m is None:
             cap_beyond_m = cap_m
-        if not margin_m > 0 or not cap_m > 0 or not cap_beyond_m > 0:
+        if cap_short_m is None:
+            cap_short_m = cap_m
+        if not margin_m > 0 or not cap_m > 0 or not cap_beyond_m > 0 or not cap_short_m > 0:
             raise InputError(
-                f"margin_m, cap_m and cap_beyond_m must be > 0, got {margin_m}, {cap_m}, {cap_beyond_m}"
+                "margin_m, cap_m, cap_beyond_m and cap_short_m must be > 0, got "
+                f"{margin_m}, {cap_m}, {cap_beyond_m}, {cap_short_m}"
             )
         self.caster = caster
         self.margin_m = float(margin_m)
         self.cap_m = float(min(cap_m, 3.0e38))
         self.cap_beyond_m = float(min(cap_beyond_m, self.cap_m))
+        self.cap_short_m = float(min(cap_short_m, self.cap_m))
         self._rays: tuple | None = None
 
     def set_scan(self, directions, ranges, origins=None, structure=None) -> None:
@@ -251,6 +260,7 @@ class ParticleRenderer:
             self.margin_m,
             self.cap_m,
             self.cap_beyond_m,
+            self.cap_short_m,
             agree_m,
             hist_top_m,
         ]

@@ -170,6 +170,11 @@ class ObservationSettings:
     """Cost in m of a ray measured more than `cap_m` longer than the map's surface: it passed where the
     map holds an object that is gone, weak evidence against the pose. At most `cap_m`; `None`: `cap_m`
     (both directions alike)."""
+    cap_short_m: float | None = None
+    """Most cost in m of a ray measured shorter than the map's surface (or meeting nothing of the map):
+    at the car's true pose such a ray met an object the map lacks (a car parked since the mapping drive,
+    a moving actor), which any pose explains alike, so beyond this it says nothing more against the
+    pose. At most `cap_m`; `None`: `cap_m` (both directions alike)."""
     min_range_m: float = 2.0
     """Returns closer than this, in m, are ignored (the car itself)."""
     max_range_m: float = 40.0
@@ -588,6 +593,7 @@ _RULES: dict[str, str] = {
             "observation.field_weight",
             "observation.cap_m",
             "observation.cap_beyond_m",
+            "observation.cap_short_m",
             "convergence.tiles",
             "convergence.cluster_m",
             "convergence.min_cluster_particles",
