@@ -12,9 +12,11 @@ Changes in the world are treated by their direction: a ray measured *shorter* th
 something the map lacks (an actor, a newly parked car) or the pose is wrong; a ray measured *longer* than
 the map's surface passed where the map holds something that is gone (a parked car of the mapping drive).
 A ray measured more than ``cap_m`` beyond the map's surface costs ``cap_beyond_m`` (≤ ``cap_m``) instead
-of ``cap_m``, so removed objects weigh less; below ``cap_m`` both directions cost alike (an asymmetric cost
-there pulls the estimate towards the walls: measured, 0.3-0.8 m of bias). Rays beyond the surface are also
-counted (``beyond``).
+of ``cap_m``, so removed objects weigh less. A ray measured short of the map's surface (or meeting nothing
+of the map) costs at most ``cap_short_m`` (≤ ``cap_m``; default ``cap_m``): at the true pose it met an
+object the map lacks, which every pose explains alike, so past that it is no further evidence against the
+pose, while a ray that passes through a mapped surface still is. Rays beyond the surface are also counted
+(``beyond``).
 
 What the residuals become as a likelihood is the observation models' business
 (:mod:`rangemcl.localization.models`: Eq. 5 there, ``p(z | x) ∝ exp(−½ d² / σ_d²)``).

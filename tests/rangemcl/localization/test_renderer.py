@@ -31,28 +31,37 @@ def scene():
     return caster, np.array([x, y, yaw]), z, dirs[keep], hits.ranges[keep]
 
 
-def reference_residuals(caster, particles, z, dirs, measured, margin, cap):
-    """d of Eq. 5 by casting each particle's rays with RayCaster.cast and reducing in numpy."""
+def reference_residuals(caster, particles, z, dirs, measured, margin, cap, beyond=None, short=None):
+    """d of Eq. 5 by casting each particle's rays with RayCaster.cast and reducing in numpy: each ray's
+    |measured - rendered| (``margin`` where the map has nothing within it) at most ``cap``; at most
+    ``beyond`` where measured more than ``cap`` beyond the map's surface, at most ``short`` where measured
+    short of it or where the map has nothing (None: ``cap``)."""
+    beyond = cap if beyond is None else beyond
+    short = cap if short is None else short
     out = []
     for (x, y, yaw), zi in zip(particles, z, strict=True):
         c, s = np.cos(yaw), np.sin(yaw)
         R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
         t = caster.cast(np.array([x, y, zi]), dirs @ R.T, measured + margin).ranges
-        r = np.where(np.isfinite(t), np.abs(measured - t), margin)
-        out.append(np.minimum(r, cap).mean())
+        hit = np.isfinite(t)
+        e = np.where(hit, measured - t, -margin)
+        limit = np.where(e > cap, beyond, np.where(e < 0, short, cap))
+        out.append(np.minimum(np.abs(e), limit).mean())
     return np.array(out)
 
 
-@pytest.mark.parametrize("cap", [np.inf, 1.0])
-def test_kernel_matches_plain_ray_casts(scene, cap):
+@pytest.mark.parametrize(
+    "cap, beyond, short", [(np.inf, None, None), (1.0, None, None), (1.0, 0.5, None), (1.0, 0.5, 0.3)]
+)
+def test_kernel_matches_plain_ray_casts(scene, cap, beyond, short):
     caster, true, z, dirs, measured = scene
     rng = np.random.default_rng(0)
     particles = true + rng.normal(0, [1.0, 1.0, 0.1], size=(40, 3))
     zs = np.full(40, z)
-    model = ParticleRenderer(caster, margin_m=2.0, cap_m=cap)
+    model = ParticleRenderer(caster, margin_m=2.0, cap_m=cap, cap_beyond_m=beyond, cap_short_m=short)
     model.set_scan(dirs, measured)
     got = model.mean_residuals(particles, zs)
-    ref = reference_residuals(caster, particles, zs, dirs, measured, 2.0, cap)
+    ref = reference_residuals(caster, particles, zs, dirs, measured, 2.0, cap, beyond, short)
     np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-4)
 
 
