@@ -316,8 +316,9 @@ def trials(
     ),
     compare: list[str] = typer.Option(
         None,
-        help="With --report-only: also report the same trials run with this localizer settings YAML "
-        "('default': no --config), side by side (a method column); may be given more than once.",
+        help="Also report the same trials run with this localizer settings YAML ('default': no --config), "
+        "side by side (a method column); may be given more than once. With --report-only, or with suite "
+        "generalization, which runs them too (in each town, after --config's).",
     ),
     overwrite: bool = typer.Option(
         False, help="Start the suite folder over (its drives, trials and results are replaced)."
@@ -336,8 +337,11 @@ def trials(
     general = suite == "generalization"
     if suite not in (*SUITES, "generalization"):
         raise InputError(f"suite {suite!r}: expected one of {', '.join(SUITES)}, generalization")
-    if compare and not report_only:
-        raise InputError("--compare: only with --report-only (run each method with its own --config)")
+    if compare and not (report_only or general):
+        raise InputError(
+            "--compare: only with --report-only, or with suite generalization (run each method of a "
+            "one-scene suite with its own --config)"
+        )
     given = {
         "scene": scene,
         "route": route,

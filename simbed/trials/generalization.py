@@ -292,7 +292,8 @@ def run_generalization(
     ``run_seed``: None draws a fresh one, or takes the one ``OUT/towns.yaml`` recorded (a run continues).
     ``report_only``: run nothing, report the trials finished so far of the towns ``OUT/towns.yaml``
     records; ``compare``: other suite configs (other localizer settings: ``settings`` and ``method`` of
-    ``settings.suite``) whose trials join the report, side by side."""
+    ``settings.suite``) whose trials run in every town after the suite's own, on the same trials, and
+    join the report, side by side."""
     s = settings or GeneralizationSettings()
     out = Path(out_dir)
     if report_only:
@@ -307,6 +308,7 @@ def run_generalization(
             say(line)
         return rows
     check_generalization(s, workers=workers, backend=backend, device=device)
+    configs = (s.suite, *compare)
     record, towns = start_run(out, s, run_seed, say)
     for town in towns:
         town_dir = out / "towns" / town.name
@@ -314,20 +316,32 @@ def run_generalization(
         entry = next(t for t in record["towns"] if t["name"] == town.name)
         entry.update(stats)
         write_towns_yaml(out, record)
-        say(f"[{town.name}] {SUITE} suite -> {town_dir / 'suite'}")
-        run_suite(
-            SUITE,
-            town_dir / "suite",
-            town_dir / "map",
-            config=replace(s.suite, scene=str(scene_path(out, town))),
-            workers=workers,
-            backend=backend,
-            address=address,
-            device=device,
-            say=lambda line, name=town.name: say(f"[{name}] {line}"),
-        )
-    rows = town_rows(out, towns, (s.suite,))
-    for line in write_generalization_report(out, record, rows, expected_trials(out, towns, (s.suite,))):
+        scene = str(scene_path(out, town))
+        for config in configs:  # each method on the same trials (the same drives, starts and seeds)
+            say(f"[{town.name}] {SUITE} suite ({config.method}) -> {town_dir / 'suite'}")
+            run_suite(
+                SUITE,
+                town_dir / "suite",
+                town_dir / "map",
+                config=replace(config, scene=scene),
+                workers=workers,
+                backend=backend,
+                address=address,
+                device=device,
+                say=lambda line, name=town.name: say(f"[{name}] {line}"),
+            )
+        if compare:  # the town's own table with every method side by side
+            run_suite(
+                SUITE,
+                town_dir / "suite",
+                town_dir / "map",
+                config=replace(s.suite, scene=scene),
+                report_only=True,
+                compare=tuple(replace(c, scene=scene) for c in compare),
+                say=lambda line: None,
+            )
+    rows = town_rows(out, towns, configs)
+    for line in write_generalization_report(out, record, rows, expected_trials(out, towns, configs)):
         say(line)
     return rows
 

@@ -263,6 +263,19 @@ def test_quick_run_end_to_end_and_continued(tmp_path):
 
     report = simbed(*args[:-4], "--report-only", "--compare", "default")
     assert report.returncode == 0 and "1 of 1 trials finished" in report.stdout, report.stderr
+
+    # a second method on the same trials in one command: --config's runs, --compare's is already done
+    short = tmp_path / "short.yaml"
+    short.write_text("observation:\n  cap_short_m: 0.3\n")
+    both = simbed(*args[:-4], "--workers", "2", "--config", str(short), "--compare", "default")
+    assert both.returncode == 0, both.stderr
+    assert "1 trials, 0 already done" in both.stdout and "1 trials, 1 already done" in both.stdout
+    with open(out / "generalization.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert sorted(r["method"] for r in rows) == ["default", "short"]
+    assert len({r["drive_seed"] + r["start_frame"] + r["seed"] for r in rows}) == 1  # the same trial
+    assert "short" in (suite / "sensors.md").read_text() and "default" in (suite / "sensors.md").read_text()
+    assert (trial_dir / "metrics.json").stat().st_mtime_ns == stamp
     other = simbed(*args[:-3], "8")
     assert other.returncode == 2 and "holds another draw of towns (run seed 7" in other.stderr
     assert len(other.stderr.strip().splitlines()) == 1
