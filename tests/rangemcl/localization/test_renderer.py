@@ -123,3 +123,50 @@ def test_particles_far_apart_cast_in_groups_with_the_same_scores():
     for k in ("mean", "agree", "beyond", "structure", "hist"):
         np.testing.assert_array_equal(got[k], ref[k], err_msg=k)
     assert (ref["agree"] > 0).sum() > 20  # some particles do see a box
+
+
+def _buildings(y0: float, seed: int) -> list:
+    """Irregular blocks on both sides of a street along x at ``y0`` (``seed``: which blocks)."""
+    rng = np.random.default_rng(seed)
+    parts, x = [], -30.0
+    while x < 60.0:
+        for side in (-1.0, 1.0):
+            length, depth, height = rng.uniform(6, 14), rng.uniform(6, 10), rng.uniform(4, 12)
+            setback = rng.uniform(7.0, 10.0)
+            centre = (x + length / 2, y0 + side * (setback + depth / 2), height / 2 - 0.5)
+            parts.append(meshgen.box((length, depth, height), centre, cell_m=3.0))
+        x += rng.uniform(14.0, 22.0)
+    return parts
+
+
+def _parked_cars(y0: float) -> list:
+    """A row of parked cars on the street's verge, one every 9 m."""
+    return [
+        meshgen.box((4.4, 1.8, 1.5), (x, y0 + 5.0, 0.75), cell_m=1.0) for x in np.arange(-20.0, 40.0, 9.0)
+    ]
+
+
+def test_a_street_whose_parked_cars_are_new_beats_another_whose_mapped_cars_line_up_with_them():
+    """An 8-beam sensor pointing down (the MQ-8) on street A, where cars have parked since the mapping
+    drive; the map's other street B has its own buildings and, from the mapping drive, cars parked just
+    where A's are now. At A the cars' rays end short of the map's surface (an object the map lacks); at B
+    they agree, while B's buildings contradict the scan (rays pass through mapped facades, or end short of
+    them). With every short ray costing the full cap, B explains the scan better than the car's own street
+    (the wrong place that a sparse sensor's search converged on in a generated town); with short rays
+    costing at most the agreement distance (``cap_short_m``) the true street is the better one."""
+    ground = meshgen.grid_patch((-40.0, -30.0, 0.0), (120.0, 0, 0), (0, 120.0, 0), 30, 30)
+    world = RayCaster(threads=2)
+    world.add_mesh(*meshgen.merge([ground, *_buildings(0.0, 3), *_parked_cars(0.0)]))
+    mapped = RayCaster(threads=2)
+    mapped.add_mesh(*meshgen.merge([ground, *_buildings(0.0, 3), *_buildings(60.0, 4), *_parked_cars(60.0)]))
+    geo = RangeImageGeometry.for_spec(load_spec("mq-8").with_columns(720))
+    dirs = geo.directions.reshape(-1, 3)
+    hits = world.cast(np.array([0.0, 0.0, 1.73]), dirs, 40.0)
+    a_and_b = np.array([[0.0, 0.0, 0.0], [0.0, 60.0, 0.0]])
+    d = {}
+    for short in (None, 0.3):
+        model = ParticleRenderer(mapped, margin_m=2.0, cap_m=1.0, cap_beyond_m=0.5, cap_short_m=short)
+        model.set_scan(dirs[hits.hit], hits.ranges[hits.hit])
+        d[short] = model.mean_residuals(a_and_b, np.full(2, 1.73))
+    assert d[None][1] < 0.8 * d[None][0], d  # every short ray at the cap: street B wins
+    assert d[0.3][0] < 0.9 * d[0.3][1], d  # short rays at most 0.3 m: the car's own street wins
