@@ -12,11 +12,12 @@ Changes in the world are treated by their direction: a ray measured *shorter* th
 something the map lacks (an actor, a newly parked car) or the pose is wrong; a ray measured *longer* than
 the map's surface passed where the map holds something that is gone (a parked car of the mapping drive).
 A ray measured more than ``cap_m`` beyond the map's surface costs ``cap_beyond_m`` (≤ ``cap_m``) instead
-of ``cap_m``, so removed objects weigh less. A ray measured short of the map's surface (or meeting nothing
-of the map) costs at most ``cap_short_m`` (≤ ``cap_m``; default ``cap_m``): at the true pose it met an
-object the map lacks, which every pose explains alike, so past that it is no further evidence against the
-pose, while a ray that passes through a mapped surface still is. Rays beyond the surface are also counted
-(``beyond``).
+of ``cap_m``, so removed objects weigh less; a ray measured more than ``cap_m`` *short* of it (or meeting
+nothing of the map) costs ``cap_short_m`` (≤ ``cap_m``; default ``cap_m``): at the true pose it met an
+object the map lacks, which every pose explains alike, while a ray that passes through a mapped surface
+is evidence against the pose. Within ``cap_m`` both directions cost alike (an asymmetric cost there pulls
+the estimate towards the walls: measured, 0.3-0.8 m of bias, and 0.5 m along a street for an 8-beam
+sensor). Rays beyond the surface are also counted (``beyond``).
 
 What the residuals become as a likelihood is the observation models' business
 (:mod:`rangemcl.localization.models`: Eq. 5 there, ``p(z | x) ∝ exp(−½ d² / σ_d²)``).
@@ -46,7 +47,7 @@ def particle_residual_kernel(
     margin: float,
     cap: float,
     cap_beyond: float,  # cost of a ray measured more than cap beyond the map's surface (a removed object)
-    cap_short: float,  # at most this cost for a ray measured short of the map's surface (an added object)
+    cap_short: float,  # cost of a ray measured more than cap short of the map's surface (an added object)
     tau: float,  # a ray agrees when its residual is below tau
     hist_top: float,  # rendered ranges binned into out_hist's columns over [0, hist_top)
     offset: int,
@@ -83,7 +84,7 @@ def particle_residual_kernel(
             e = measured[i] - t
             r = wp.abs(e)
             lim = cap
-            if e < 0.0:  # in front of the map's surface: an object the map lacks, or a wrong pose
+            if e < -cap:  # far in front of the map's surface: an object the map lacks, not a small pose error
                 lim = cap_short
             if e > tau:
                 beyond += 1.0

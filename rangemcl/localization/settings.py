@@ -171,10 +171,10 @@ class ObservationSettings:
     map holds an object that is gone, weak evidence against the pose. At most `cap_m`; `None`: `cap_m`
     (both directions alike)."""
     cap_short_m: float | None = None
-    """Most cost in m of a ray measured shorter than the map's surface (or meeting nothing of the map):
-    at the car's true pose such a ray met an object the map lacks (a car parked since the mapping drive,
-    a moving actor), which any pose explains alike, so beyond this it says nothing more against the
-    pose. At most `cap_m`; `None`: `cap_m` (both directions alike)."""
+    """Cost in m of a ray measured more than `cap_m` shorter than the map's surface (or meeting nothing
+    of the map): at the car's true pose it met an object the map lacks (a car parked since the mapping
+    drive, a moving actor), which every pose explains alike, weak evidence against the pose. At most
+    `cap_m`; `None`: `cap_m` (both directions alike)."""
     min_range_m: float = 2.0
     """Returns closer than this, in m, are ignored (the car itself)."""
     max_range_m: float = 40.0

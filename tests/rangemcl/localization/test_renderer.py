@@ -35,7 +35,7 @@ def reference_residuals(caster, particles, z, dirs, measured, margin, cap, beyon
     """d of Eq. 5 by casting each particle's rays with RayCaster.cast and reducing in numpy: each ray's
     |measured - rendered| (``margin`` where the map has nothing within it) at most ``cap``; at most
     ``beyond`` where measured more than ``cap`` beyond the map's surface, at most ``short`` where measured
-    short of it or where the map has nothing (None: ``cap``)."""
+    more than ``cap`` short of it or where the map has nothing (None: ``cap``)."""
     beyond = cap if beyond is None else beyond
     short = cap if short is None else short
     out = []
@@ -45,7 +45,7 @@ def reference_residuals(caster, particles, z, dirs, measured, margin, cap, beyon
         t = caster.cast(np.array([x, y, zi]), dirs @ R.T, measured + margin).ranges
         hit = np.isfinite(t)
         e = np.where(hit, measured - t, -margin)
-        limit = np.where(e > cap, beyond, np.where(e < 0, short, cap))
+        limit = np.where(e > cap, beyond, np.where(e < -cap, short, cap))
         out.append(np.minimum(np.abs(e), limit).mean())
     return np.array(out)
 
@@ -152,8 +152,9 @@ def test_a_street_whose_parked_cars_are_new_beats_another_whose_mapped_cars_line
     where A's are now. At A the cars' rays end short of the map's surface (an object the map lacks); at B
     they agree, while B's buildings contradict the scan (rays pass through mapped facades, or end short of
     them). With every short ray costing the full cap, B explains the scan better than the car's own street
-    (the wrong place that a sparse sensor's search converged on in a generated town); with short rays
-    costing at most the agreement distance (``cap_short_m``) the true street is the better one."""
+    (the wrong place that a sparse sensor's search converged on in a generated town); with rays
+    measured more than the cap short costing the agreement distance (``cap_short_m``) the true street is
+    the better one."""
     ground = meshgen.grid_patch((-40.0, -30.0, 0.0), (120.0, 0, 0), (0, 120.0, 0), 30, 30)
     world = RayCaster(threads=2)
     world.add_mesh(*meshgen.merge([ground, *_buildings(0.0, 3), *_parked_cars(0.0)]))
@@ -169,4 +170,4 @@ def test_a_street_whose_parked_cars_are_new_beats_another_whose_mapped_cars_line
         model.set_scan(dirs[hits.hit], hits.ranges[hits.hit])
         d[short] = model.mean_residuals(a_and_b, np.full(2, 1.73))
     assert d[None][1] < 0.8 * d[None][0], d  # every short ray at the cap: street B wins
-    assert d[0.3][0] < 0.9 * d[0.3][1], d  # short rays at most 0.3 m: the car's own street wins
+    assert d[0.3][0] < 0.9 * d[0.3][1], d  # far-short rays 0.3 m: the car's own street wins
