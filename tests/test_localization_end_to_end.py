@@ -316,3 +316,51 @@ def test_search_trace_tool_follows_a_global_search(town, tmp_path):
     assert float(rows[-1]["leader_error_m"]) < 1.0 and rows[-1]["true_rank"] == "0"
     assert all(float(x["d_cloud_best_m"]) <= float(x["d_near_best_m"]) for x in rows if x["d_near_best_m"])
     _refuses_a_missing_drive(tool, town)
+
+
+def test_ray_breakdown_tool_classes_every_ray_and_costs_it_as_the_kernel_does(town, tmp_path):
+    """tools/ray_breakdown.py on the test drive (parked-car set 1 against the map's 0): every ray in one
+    class, the classes' shares adding up, and the mean of the per-ray costs it computes equal to the
+    localizer's own mean residual at the same pose (the kernel's); a scene without parked cars is one
+    error line and exit status 2."""
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    tool = root / "tools" / "ray_breakdown.py"
+    seq, m = str(town / "test_run"), str(town / "map")
+    for config in ([], ["--config", str(root / "configs" / "candidate.yaml")]):
+        args = [
+            "--seq",
+            seq,
+            "--map",
+            m,
+            "--scene",
+            str(root / "scenes" / "town_small.xml"),
+            "--frames",
+            "20",
+        ]
+        r = subprocess.run(
+            [sys.executable, str(tool), *args, "--particles", "500", *config],
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+        assert r.returncode == 0, r.stderr
+        head = re.search(r"d at the truth ([\d.]+) m, best of 500 spread poses ([\d.]+) m", r.stdout)
+        assert head, r.stdout
+        costs = [float(x) for x in re.findall(r"mean cost ([\d.]+) m", r.stdout)]
+        assert costs == [pytest.approx(float(head[1]), abs=2e-3), pytest.approx(float(head[2]), abs=2e-3)]
+        blocks = r.stdout.split("  best ")
+        for block in blocks:
+            shares = [int(x) for x in re.findall(r"(\d+)% of the rays", block)]
+            assert 98 <= sum(shares) <= 102, r.stdout  # each share rounded to a whole per cent
+    bare = tmp_path / "bare.xml"
+    bare.write_text("<mujoco><worldbody/></mujoco>\n")
+    r = subprocess.run(
+        [sys.executable, str(tool), "--seq", seq, "--map", m, "--scene", str(bare), "--frames", "20"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "bare.xml" in r.stderr, r.stderr

@@ -36,9 +36,10 @@ import time
 import numpy as np
 
 
-def embree_residuals(scene, o3d, particles, z, rays, margin, cap, cap_beyond):
+def embree_residuals(scene, o3d, particles, z, rays, margin, cap, cap_beyond, cap_short):
     """Eq. 5's mean residual per particle through Embree: all particles' rays in one batch (a ray measured
-    more than ``cap`` beyond the map's surface costs ``cap_beyond``, as in the Warp kernel)."""
+    more than ``cap`` beyond the map's surface costs ``cap_beyond``, one more than ``cap`` short of it or
+    meeting nothing costs ``cap_short``, as in the Warp kernel)."""
     n, r = len(particles), len(rays.ranges)
     c, s = np.cos(particles[:, 2]), np.sin(particles[:, 2])
     d = rays.directions
@@ -55,6 +56,7 @@ def embree_residuals(scene, o3d, particles, z, rays, margin, cap, cap_beyond):
     e = rays.ranges[None, :] - t
     res = np.minimum(np.where(hit, np.abs(e), margin), cap)
     res = np.where(hit & (e > cap), cap_beyond, res)
+    res = np.where(~hit | (e < -cap), np.minimum(res, cap_short), res)
     return res.mean(axis=1)
 
 
@@ -91,6 +93,7 @@ def main() -> None:
     o = settings.observation
     cap = np.inf if o.cap_m is None else o.cap_m
     cap_beyond = cap if o.cap_beyond_m is None else min(o.cap_beyond_m, cap)
+    cap_short = cap if o.cap_short_m is None else min(o.cap_short_m, cap)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(
         o3d.core.Tensor(mesh_map.vertices.astype(np.float32)),
@@ -120,7 +123,7 @@ def main() -> None:
             t1 = time.perf_counter()
             dw = loc.residuals(rays)
             t2 = time.perf_counter()
-            de = embree_residuals(scene, o3d, loc.particles, z, rays, o.margin_m, cap, cap_beyond)
+            de = embree_residuals(scene, o3d, loc.particles, z, rays, o.margin_m, cap, cap_beyond, cap_short)
             t3 = time.perf_counter()
             weigh_warp.append(t2 - t1)
             weigh_embree.append(t3 - t2)
@@ -165,7 +168,7 @@ def main() -> None:
         gw.append(info.seconds)
         z = loc.sensor_z(loc.particles[:, :2])
         t1 = time.perf_counter()
-        embree_residuals(scene, o3d, loc.particles, z, rays, o.margin_m, cap, cap_beyond)
+        embree_residuals(scene, o3d, loc.particles, z, rays, o.margin_m, cap, cap_beyond, cap_short)
         ge.append(time.perf_counter() - t1)
     before = {
         "particles": args.many,

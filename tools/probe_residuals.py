@@ -41,10 +41,10 @@ def main() -> None:
     from rangemcl.config import load_config
     from rangemcl.datasets.kitti import load_sequence
     from rangemcl.errors import InputError
-    from rangemcl.localization import LocalizerSettings, build_localizer, prepare_rays
-    from rangemcl.localization.pipeline import frame_period, odometry_xyyaw, resolve_sensor_height
+    from rangemcl.localization import LocalizerSettings, build_localizer
+    from rangemcl.localization.pipeline import frame_rays, odometry_xyyaw, resolve_sensor_height
     from rangemcl.maps.meshmap import MeshMap
-    from rangemcl.se2 import se2_between, xyyaw_of
+    from rangemcl.se2 import xyyaw_of
 
     seq = load_sequence(a.seq, require_poses=True)
     settings = load_config(LocalizerSettings, a.config)
@@ -55,7 +55,6 @@ def main() -> None:
     loc = build_localizer(mesh_map, settings, seed=a.seed, threads=a.threads, sensor_height_m=height)
     truths = xyyaw_of(seq.poses)
     odo, _ = odometry_xyyaw(seq, False)
-    period = frame_period(seq)
     rng = np.random.default_rng(a.seed)
     frames = [int(f) for f in a.frames.split(",") if f.strip()]
     print(
@@ -67,15 +66,7 @@ def main() -> None:
             raise InputError(f"{a.seq}: frame {f} is outside the sequence (0..{len(seq) - 1})")
         truth = truths[f]
         # the scan as the localizer prepares it: de-skewed with the frame's odometry, levelled by the IMU
-        rays = prepare_rays(
-            seq.scan(f),
-            o,
-            np.random.default_rng(a.seed + f),
-            fire_time_s=seq.point_meta(f).get("time_s"),
-            frame_period_s=period,
-            frame_motion=se2_between(odo[f - 1], odo[f]) if f else np.zeros(3),
-            roll_pitch=tuple(seq.imu_roll_pitch[f]) if seq.imu_roll_pitch is not None else None,
-        )
+        rays = frame_rays(seq, f, o, np.random.default_rng(a.seed + f), odo)
         near = truth + rng.normal(0.0, 1.0, (a.near, 3)) * [0.3, 0.3, math.radians(2.0)]
         d_truth = float(loc.residuals(rays, truth[None])[0])
         d_near = float(loc.residuals(rays, near).min())

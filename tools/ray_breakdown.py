@@ -69,10 +69,10 @@ def main() -> None:
     from rangemcl.config import load_config
     from rangemcl.datasets.kitti import load_sequence
     from rangemcl.errors import InputError
-    from rangemcl.localization import LocalizerSettings, build_localizer, prepare_rays
-    from rangemcl.localization.pipeline import frame_period, odometry_xyyaw, resolve_sensor_height
+    from rangemcl.localization import LocalizerSettings, build_localizer
+    from rangemcl.localization.pipeline import frame_rays, odometry_xyyaw, resolve_sensor_height
     from rangemcl.maps.meshmap import MeshMap
-    from rangemcl.se2 import se2_between, xyyaw_of
+    from rangemcl.se2 import xyyaw_of
 
     cars = parked_cars(a.scene)
     seq = load_sequence(a.seq, require_poses=True)
@@ -90,7 +90,6 @@ def main() -> None:
     loc = build_localizer(mesh_map, settings, seed=a.seed, sensor_height_m=height)
     truths = xyyaw_of(seq.poses)
     odo, _ = odometry_xyyaw(seq, False)
-    period = frame_period(seq)
 
     def per_ray(rays, pose):
         c, s = math.cos(pose[2]), math.sin(pose[2])
@@ -108,15 +107,7 @@ def main() -> None:
     for f in (int(x) for x in a.frames.split(",") if x.strip()):
         if not 0 <= f < len(seq):
             raise InputError(f"{a.seq}: frame {f} is outside the sequence (0..{len(seq) - 1})")
-        rays = prepare_rays(
-            seq.scan(f),
-            o,
-            np.random.default_rng(a.seed + f),
-            fire_time_s=seq.point_meta(f).get("time_s"),
-            frame_period_s=period,
-            frame_motion=se2_between(odo[f - 1], odo[f]) if f else np.zeros(3),
-            roll_pitch=tuple(seq.imu_roll_pitch[f]) if seq.imu_roll_pitch is not None else None,
-        )
+        rays = frame_rays(seq, f, o, np.random.default_rng(a.seed + f), odo)
         loc.spread(a.particles)
         d = loc.residuals(rays)
         best = loc.particles[int(np.argmin(d))].copy()

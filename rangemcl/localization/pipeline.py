@@ -143,6 +143,24 @@ def frame_period(seq: Sequence) -> float | None:
     return None
 
 
+def frame_rays(seq: Sequence, i: int, observation, rng: np.random.Generator, odometry: np.ndarray):
+    """Frame ``i``'s rays as the localizer draws them for an update (:func:`prepare_rays` with the
+    observation settings): de-skewed with the frame's motion in ``odometry`` (``(N, 3)`` x, y, yaw, as
+    :func:`odometry_xyyaw` gives it), levelled by the IMU's roll and pitch where the sequence has them.
+    For tools that score a recorded frame outside a run."""
+    from rangemcl.localization import prepare_rays
+
+    return prepare_rays(
+        seq.scan(i),
+        observation,
+        rng,
+        fire_time_s=seq.point_meta(i).get("time_s"),
+        frame_period_s=frame_period(seq),
+        frame_motion=se2_between(odometry[i - 1], odometry[i]) if i else np.zeros(3),
+        roll_pitch=tuple(seq.imu_roll_pitch[i]) if seq.imu_roll_pitch is not None else None,
+    )
+
+
 def resolve_sensor_height(seq: Sequence, mesh_map: MeshMap, settings: LocalizerSettings) -> tuple[float, str]:
     if settings.sensor_height_m is not None:
         return float(settings.sensor_height_m), "settings"
