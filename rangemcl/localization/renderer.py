@@ -16,8 +16,8 @@ of ``cap_m``, so removed objects weigh less; a ray measured more than ``cap_m`` 
 nothing of the map) costs ``cap_short_m`` (≤ ``cap_m``; default ``cap_m``): at the true pose it met an
 object the map lacks, which every pose explains alike, while a ray that passes through a mapped surface
 is evidence against the pose. Within ``cap_m`` both directions cost alike (an asymmetric cost there pulls
-the estimate towards the walls: measured, 0.3-0.8 m of bias, and 0.5 m along a street for an 8-beam
-sensor). Rays beyond the surface are also counted (``beyond``).
+the estimate towards the walls: measured, 0.3-0.8 m of bias). Rays beyond the surface are also counted
+(``beyond``).
 
 What the residuals become as a likelihood is the observation models' business
 (:mod:`rangemcl.localization.models`: Eq. 5 there, ``p(z | x) ∝ exp(−½ d² / σ_d²)``).
