@@ -451,12 +451,15 @@ _SCAN_COUNTS = (
 
 
 def _fingerprint(seq, settings: MapSettings) -> str:
-    """What a resumed build must share with the interrupted one: the sequence and the settings."""
+    """What a resumed build must share with the interrupted one: the sequence and the settings that
+    shape the map (not ``workers``: every tile's mesh is the same however many build at once, so a build
+    may be resumed with another count)."""
     import hashlib
 
     scans = [str(p) for p in seq.scan_paths]
+    shaping = {k: v for k, v in to_dict(settings).items() if k != "workers"}
     data = json.dumps(
-        {"seq": str(Path(seq.root).resolve()), "scans": scans, "settings": to_dict(settings)},
+        {"seq": str(Path(seq.root).resolve()), "scans": scans, "settings": shaping},
         sort_keys=True,
         default=str,
     )
