@@ -36,10 +36,9 @@ import time
 import numpy as np
 
 
-def embree_residuals(scene, o3d, particles, z, rays, margin, cap, cap_beyond, cap_short):
-    """Eq. 5's mean residual per particle through Embree: all particles' rays in one batch (a ray measured
-    more than ``cap`` beyond the map's surface costs ``cap_beyond``, one more than ``cap`` short of it or
-    meeting nothing costs ``cap_short``, as in the Warp kernel)."""
+def embree_residuals(scene, o3d, particles, z, rays, margin, costs):
+    """Eq. 5's mean residual per particle through Embree: all particles' rays in one batch, each ray's
+    residual costed as the Warp kernel costs it (``costs``: :meth:`ParticleRenderer.ray_costs`)."""
     n, r = len(particles), len(rays.ranges)
     c, s = np.cos(particles[:, 2]), np.sin(particles[:, 2])
     d = rays.directions
@@ -51,13 +50,8 @@ def embree_residuals(scene, o3d, particles, z, rays, margin, cap, cap_beyond, ca
         np.concatenate([origin, np.stack([dx, dy, dz], axis=-1)], axis=-1).reshape(-1, 6).astype(np.float32)
     )
     t = scene.cast_rays(o3d.core.Tensor(batch))["t_hit"].numpy().reshape(n, r)
-    limit = rays.ranges[None, :] + margin
-    hit = t <= limit
-    e = rays.ranges[None, :] - t
-    res = np.minimum(np.where(hit, np.abs(e), margin), cap)
-    res = np.where(hit & (e > cap), cap_beyond, res)
-    res = np.where(~hit | (e < -cap), np.minimum(res, cap_short), res)
-    return res.mean(axis=1)
+    hit = t <= rays.ranges[None, :] + margin
+    return costs(np.where(hit, rays.ranges[None, :] - t, -np.inf)).mean(axis=1)
 
 
 def main() -> None:
@@ -91,9 +85,6 @@ def main() -> None:
     period = frame_period(seq)
     settings = LocalizerSettings()
     o = settings.observation
-    cap = np.inf if o.cap_m is None else o.cap_m
-    cap_beyond = cap if o.cap_beyond_m is None else min(o.cap_beyond_m, cap)
-    cap_short = cap if o.cap_short_m is None else min(o.cap_short_m, cap)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(
         o3d.core.Tensor(mesh_map.vertices.astype(np.float32)),
@@ -123,7 +114,7 @@ def main() -> None:
             t1 = time.perf_counter()
             dw = loc.residuals(rays)
             t2 = time.perf_counter()
-            de = embree_residuals(scene, o3d, loc.particles, z, rays, o.margin_m, cap, cap_beyond, cap_short)
+            de = embree_residuals(scene, o3d, loc.particles, z, rays, o.margin_m, loc.model.ray_costs)
             t3 = time.perf_counter()
             weigh_warp.append(t2 - t1)
             weigh_embree.append(t3 - t2)
@@ -168,7 +159,7 @@ def main() -> None:
         gw.append(info.seconds)
         z = loc.sensor_z(loc.particles[:, :2])
         t1 = time.perf_counter()
-        embree_residuals(scene, o3d, loc.particles, z, rays, o.margin_m, cap, cap_beyond, cap_short)
+        embree_residuals(scene, o3d, loc.particles, z, rays, o.margin_m, loc.model.ray_costs)
         ge.append(time.perf_counter() - t1)
     before = {
         "particles": args.many,

@@ -82,9 +82,6 @@ def main() -> None:
     settings = load_config(LocalizerSettings, a.config)
     settings.observation.model = "range"
     o = settings.observation
-    cap = math.inf if o.cap_m is None else o.cap_m
-    beyond = cap if o.cap_beyond_m is None else min(o.cap_beyond_m, cap)
-    short_cost = cap if o.cap_short_m is None else min(o.cap_short_m, cap)
     mesh_map = MeshMap.load(a.map)
     height, _ = resolve_sensor_height(seq, mesh_map, settings)
     loc = build_localizer(mesh_map, settings, seed=a.seed, sensor_height_m=height)
@@ -101,7 +98,7 @@ def main() -> None:
         e = rays.ranges - rendered  # > 0: measured beyond the map's surface; -inf: the map has nothing
         measured_at = origin + dirs * rays.ranges[:, None]
         rendered_at = origin + dirs * np.where(hits.hit, hits.ranges, rays.ranges)[:, None]
-        cost = np.where(e > cap, beyond, np.where(e < -cap, short_cost, np.minimum(np.abs(e), cap)))
+        cost = loc.model.ray_costs(e)  # the kernel's per-ray costs
         return e, cost, measured_at, rendered_at, origin[2] - height
 
     for f in (int(x) for x in a.frames.split(",") if x.strip()):

@@ -46,7 +46,7 @@ from rangemcl.datasets.kitti import Sequence, poses_to_tum, write_poses_txt
 from rangemcl.datasets.sources import open_source
 from rangemcl.errors import InputError
 from rangemcl.evaluation.metrics import localization_metrics, shift_event_frames
-from rangemcl.localization import LocalizerSettings, MonteCarloLocalizer, build_localizer
+from rangemcl.localization import LocalizerSettings, MonteCarloLocalizer, build_localizer, prepare_rays
 from rangemcl.maps.meshmap import MeshMap
 from rangemcl.se2 import rotation_roll_pitch, se2_between, xyyaw_of
 from rangemcl.viz.rerun import RunViewer, check_rrd_path, rerun_module
@@ -148,8 +148,6 @@ def frame_rays(seq: Sequence, i: int, observation, rng: np.random.Generator, odo
     observation settings): de-skewed with the frame's motion in ``odometry`` (``(N, 3)`` x, y, yaw, as
     :func:`odometry_xyyaw` gives it), levelled by the IMU's roll and pitch where the sequence has them.
     For tools that score a recorded frame outside a run."""
-    from rangemcl.localization import prepare_rays
-
     return prepare_rays(
         seq.scan(i),
         observation,

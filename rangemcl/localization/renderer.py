@@ -149,6 +149,15 @@ class ParticleRenderer:
         self.cap_short_m = float(min(cap_short_m, self.cap_m))
         self._rays: tuple | None = None
 
+    def ray_costs(self, errors) -> np.ndarray:
+        """Each ray's cost as the kernel charges it, in numpy: ``errors`` = measured − rendered range
+        (``-inf`` where the map has nothing within the margin); the kernel's ``d`` is their mean."""
+        e = np.asarray(errors, np.float64)
+        miss = ~np.isfinite(e)
+        cost = np.minimum(np.where(miss, self.margin_m, np.abs(e)), self.cap_m)
+        cost = np.where(~miss & (e > self.cap_m), self.cap_beyond_m, cost)
+        return np.where(miss | (e < -self.cap_m), np.minimum(cost, self.cap_short_m), cost)
+
     def set_scan(self, directions, ranges, origins=None, structure=None) -> None:
         """The measured rays of a scan: unit directions ``(R, 3)`` in the levelled sensor frame, ranges
         ``(R,)`` (> 0), optional per-ray origin offsets ``(R, 3)`` and ``structure`` flags ``(R,)`` (rays

@@ -62,6 +62,14 @@ def test_kernel_matches_plain_ray_casts(scene, cap, beyond, short):
     model.set_scan(dirs, measured)
     got = model.mean_residuals(particles, zs)
     ref = reference_residuals(caster, particles, zs, dirs, measured, 2.0, cap, beyond, short)
+    # the kernel's costs in numpy (what the tools use), ray by ray, average to the same d
+    for (x, y, yaw), zi, d in zip(particles[:5], zs, got, strict=False):
+        c, s = np.cos(yaw), np.sin(yaw)
+        t = caster.cast(
+            np.array([x, y, zi]), dirs @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1.0]]), measured + 2.0
+        )
+        e = np.where(np.isfinite(t.ranges), measured - t.ranges, -np.inf)
+        assert model.ray_costs(e).mean() == pytest.approx(d, rel=1e-4, abs=1e-4)
     np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-4)
 
 
