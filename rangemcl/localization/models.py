@@ -59,11 +59,21 @@ class RangeModel(ScoringModel):
     name = "range"
     lost_floor = 0.3
 
-    def __init__(self, kernel: ParticleRenderer, sigma_m: float):
+    def __init__(self, kernel: ParticleRenderer, sigma_m: float, movable_height_m: float | None = None):
         if not sigma_m > 0:
             raise InputError(f"range model: sigma_m must be > 0, got {sigma_m}")
+        if movable_height_m is not None and not movable_height_m > 0:
+            raise InputError(f"range model: movable_height_m must be > 0, got {movable_height_m}")
         self.kernel = kernel
         self.sigma = float(sigma_m)
+        self.movable_height_m = movable_height_m
+
+    def change_top_z(self, rays) -> float | None:
+        """The sensor-frame height below which the world may have changed, for these rays."""
+        h = getattr(rays, "sensor_height_m", None)
+        if self.movable_height_m is None or h is None:
+            return None
+        return self.movable_height_m - h
 
     def log_likelihood(self, mean_residuals: np.ndarray) -> np.ndarray:
         """Eq. 5 in log form: ``−½ d² / σ_d²``."""
@@ -71,7 +81,9 @@ class RangeModel(ScoringModel):
         return -0.5 * d * d / self.sigma**2
 
     def score(self, rays, particles, sensor_z):
-        self.kernel.set_scan(rays.directions, rays.ranges, structure=rays.structure)
+        self.kernel.set_scan(
+            rays.directions, rays.ranges, structure=rays.structure, change_top_z=self.change_top_z(rays)
+        )
         out = self.kernel.scores(particles, sensor_z, agree_m=self.inlier_m)
         self.last_inliers = inlier_share(out)
         d = out["mean"].astype(np.float64)
@@ -385,6 +397,7 @@ def make_model(name: str, caster, settings, mesh_map) -> ScoringModel:
         return RangeModel(
             ParticleRenderer(caster, margin_m=o.margin_m, cap_m=cap, cap_beyond_m=beyond, cap_short_m=short),
             o.sigma_m,
+            o.movable_height_m,
         )
     if name == "overlap":
         return OverlapModel(ParticleRenderer(caster, margin_m=o.margin_m), o.overlap_tau_m, o.overlap_sigma)

@@ -16,8 +16,10 @@ of ``cap_m``, so removed objects weigh less; a ray measured more than ``cap_m`` 
 nothing of the map) costs ``cap_short_m`` (≤ ``cap_m``; default ``cap_m``): at the true pose it met an
 object the map lacks, which every pose explains alike, while a ray that passes through a mapped surface
 is evidence against the pose. Within ``cap_m`` both directions cost alike (an asymmetric cost there pulls
-the estimate towards the walls: measured, 0.3-0.8 m of bias). Rays beyond the surface are also counted
-(``beyond``).
+the estimate towards the walls: measured, 0.3-0.8 m of bias). Only what moves changes between drives:
+with a scan's ``change_top_z`` (the height of the tallest vehicle, in the sensor frame), a ray far short of
+the map at a point above it, or far beyond a map surface above it, costs ``cap_m`` (no change explains
+it: a facade does not appear or vanish). Rays beyond the surface are also counted (``beyond``).
 
 What the residuals become as a likelihood is the observation models' business
 (:mod:`rangemcl.localization.models`: Eq. 5 there, ``p(z | x) ∝ exp(−½ d² / σ_d²)``).
@@ -48,6 +50,7 @@ def particle_residual_kernel(
     cap: float,
     cap_beyond: float,  # cost of a ray measured more than cap beyond the map's surface (a removed object)
     cap_short: float,  # cost of a ray measured more than cap short of the map's surface (an added object)
+    change_top: float,  # sensor-frame z below which the world may have changed (cap_short, cap_beyond apply)
     tau: float,  # a ray agrees when its residual is below tau
     hist_top: float,  # rendered ranges binned into out_hist's columns over [0, hist_top)
     offset: int,
@@ -78,18 +81,23 @@ def particle_residual_kernel(
         limit = measured[i] + margin
         t, m, _face, _normal = closest_hit(meshes, inv_poses, moved, boxes, ow, dw, limit)
         r = float(margin)
-        lim = cap_short  # a miss: the scan met something where the map has nothing, an added object
+        # what the scan met may be an object added since the mapping drive only where such objects stand
+        low = o[2] + d[2] * measured[i] < change_top
+        lim = cap
+        if low:
+            lim = cap_short  # a miss: the scan met something where the map has nothing, an added object
         far = structure[i]  # a miss: the scan met something where the map has nothing (or wrong pose)
         if m >= 0:
             e = measured[i] - t
             r = wp.abs(e)
             lim = cap
-            if e < -cap:  # far in front of the map's surface: an object the map lacks, not a small pose error
+            if e < -cap and low:  # far in front of the map's surface: an object the map lacks
                 lim = cap_short
             if e > tau:
                 beyond += 1.0
             if e > cap:  # far beyond the map's surface: a removed object, not a small pose error
-                lim = cap_beyond
+                if o[2] + d[2] * t < change_top:  # (the surface it passed may be such an object)
+                    lim = cap_beyond
                 s_gone += structure[i]
             if e >= -cap:
                 far = 0.0
@@ -148,20 +156,30 @@ class ParticleRenderer:
         self.cap_beyond_m = float(min(cap_beyond_m, self.cap_m))
         self.cap_short_m = float(min(cap_short_m, self.cap_m))
         self._rays: tuple | None = None
+        self._change_top = 3.0e38
 
-    def ray_costs(self, errors) -> np.ndarray:
+    def ray_costs(self, errors, measured_z=None, rendered_z=None) -> np.ndarray:
         """Each ray's cost as the kernel charges it, in numpy: ``errors`` = measured − rendered range
-        (``-inf`` where the map has nothing within the margin); the kernel's ``d`` is their mean."""
+        (``-inf`` where the map has nothing within the margin); the kernel's ``d`` is their mean. With a
+        scan's ``change_top_z`` (:meth:`set_scan`), ``measured_z`` and ``rendered_z`` are the sensor-frame
+        heights of each ray's measured point and of the map's surface it met."""
         e = np.asarray(errors, np.float64)
         miss = ~np.isfinite(e)
+        top = self._change_top
+        low = np.ones(e.shape, bool) if measured_z is None else np.asarray(measured_z) < top
+        gone = np.ones(e.shape, bool) if rendered_z is None else np.asarray(rendered_z) < top
         cost = np.minimum(np.where(miss, self.margin_m, np.abs(e)), self.cap_m)
-        cost = np.where(~miss & (e > self.cap_m), self.cap_beyond_m, cost)
-        return np.where(miss | (e < -self.cap_m), np.minimum(cost, self.cap_short_m), cost)
+        cost = np.where(~miss & (e > self.cap_m) & gone, self.cap_beyond_m, cost)
+        return np.where((miss | (e < -self.cap_m)) & low, np.minimum(cost, self.cap_short_m), cost)
 
-    def set_scan(self, directions, ranges, origins=None, structure=None) -> None:
+    def set_scan(self, directions, ranges, origins=None, structure=None, change_top_z=None) -> None:
         """The measured rays of a scan: unit directions ``(R, 3)`` in the levelled sensor frame, ranges
         ``(R,)`` (> 0), optional per-ray origin offsets ``(R, 3)`` and ``structure`` flags ``(R,)`` (rays
-        that met something above the ground; default: all)."""
+        that met something above the ground; default: all). ``change_top_z``: the height in the levelled
+        sensor frame (m; the ground lies at minus the sensor's height) below which the world may have
+        changed since the mapping drive: a ray far short of the map at a measured point above it, or far
+        beyond a map surface above it, costs ``cap_m``, not ``cap_short_m`` or ``cap_beyond_m``
+        (default: no such height, every change possible)."""
         d = np.asarray(directions, np.float32)
         r = np.asarray(ranges, np.float32).reshape(-1)
         if d.ndim != 2 or d.shape[1] != 3 or len(d) != len(r) or len(d) == 0:
@@ -178,6 +196,10 @@ class ParticleRenderer:
         )
         if len(st) != len(r):
             raise InputError(f"scan rays: {len(st)} structure flags for {len(r)} rays")
+        top = 3.0e38 if change_top_z is None else float(change_top_z)
+        if not np.isfinite(top):
+            raise InputError(f"scan rays: change_top_z must be finite, got {change_top_z}")
+        self._change_top = top
         dev = self.caster.device
         # the farthest any ray of this scan reaches from its particle's sensor position
         self._reach = float(np.linalg.norm(o, axis=1).max() + r.max() + self.margin_m)
@@ -273,6 +295,7 @@ class ParticleRenderer:
             self.cap_m,
             self.cap_beyond_m,
             self.cap_short_m,
+            self._change_top,
             agree_m,
             hist_top_m,
         ]

@@ -37,6 +37,7 @@ class ScanRays:
     ranges: np.ndarray  # (R,) float64
     valid_points: int  # valid points in the scan before subsampling
     structure: np.ndarray | None = None  # (R,) bool: the point lies STRUCTURE_M above the ground
+    sensor_height_m: float | None = None  # the sensor's height above the ground the rays were levelled to
 
     def subset(self, which) -> ScanRays:
         """The rays selected by ``which`` (a boolean mask or a slice)."""
@@ -45,6 +46,7 @@ class ScanRays:
             self.ranges[which],
             self.valid_points,
             None if self.structure is None else self.structure[which],
+            self.sensor_height_m,
         )
 
 
@@ -148,4 +150,4 @@ def select_rays(
         q = q @ rotation_roll_pitch(*roll_pitch).T
     rng_ = np.linalg.norm(q, axis=1)
     structure = q[:, 2] + sensor_height_m > STRUCTURE_M  # after levelling: height above the ground
-    return ScanRays(q / rng_[:, None], rng_, int(ok.sum()), structure)
+    return ScanRays(q / rng_[:, None], rng_, int(ok.sum()), structure, float(sensor_height_m))

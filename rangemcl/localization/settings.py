@@ -175,6 +175,11 @@ class ObservationSettings:
     of the map): at the car's true pose it met an object the map lacks (a car parked since the mapping
     drive, a moving actor), which every pose explains alike, weak evidence against the pose. At most
     `cap_m`; `None`: `cap_m` (both directions alike)."""
+    movable_height_m: float | None = None
+    """Height in m above the ground up to which the world may have changed since the mapping drive (the
+    tallest vehicle: parked cars come and go, vehicles and people move). `cap_short_m` and `cap_beyond_m`
+    apply only to rays whose measured point (short) or whose map surface (beyond) lies below it; above it
+    nothing appears or vanishes between drives, and such a ray costs `cap_m`. `None`: every height."""
     min_range_m: float = 2.0
     """Returns closer than this, in m, are ignored (the car itself)."""
     max_range_m: float = 40.0
@@ -594,6 +599,7 @@ _RULES: dict[str, str] = {
             "observation.cap_m",
             "observation.cap_beyond_m",
             "observation.cap_short_m",
+            "observation.movable_height_m",
             "convergence.tiles",
             "convergence.cluster_m",
             "convergence.min_cluster_particles",

@@ -31,11 +31,14 @@ def scene():
     return caster, np.array([x, y, yaw]), z, dirs[keep], hits.ranges[keep]
 
 
-def reference_residuals(caster, particles, z, dirs, measured, margin, cap, beyond=None, short=None):
+def reference_residuals(
+    caster, particles, z, dirs, measured, margin, cap, beyond=None, short=None, top=np.inf
+):
     """d of Eq. 5 by casting each particle's rays with RayCaster.cast and reducing in numpy: each ray's
     |measured - rendered| (``margin`` where the map has nothing within it) at most ``cap``; at most
     ``beyond`` where measured more than ``cap`` beyond the map's surface, at most ``short`` where measured
-    more than ``cap`` short of it or where the map has nothing (None: ``cap``)."""
+    more than ``cap`` short of it or where the map has nothing (None: ``cap``); ``beyond`` only where the
+    map's surface, ``short`` only where the measured point, lies below the sensor-frame height ``top``."""
     beyond = cap if beyond is None else beyond
     short = cap if short is None else short
     out = []
@@ -45,23 +48,35 @@ def reference_residuals(caster, particles, z, dirs, measured, margin, cap, beyon
         t = caster.cast(np.array([x, y, zi]), dirs @ R.T, measured + margin).ranges
         hit = np.isfinite(t)
         e = np.where(hit, measured - t, -margin)
-        limit = np.where(e > cap, beyond, np.where(e < -cap, short, cap))
+        gone = dirs[:, 2] * np.where(hit, t, 0.0) < top
+        low = dirs[:, 2] * measured < top
+        limit = np.where((e > cap) & gone, beyond, np.where((e < -cap) & low, short, cap))
         out.append(np.minimum(np.abs(e), limit).mean())
     return np.array(out)
 
 
 @pytest.mark.parametrize(
-    "cap, beyond, short", [(np.inf, None, None), (1.0, None, None), (1.0, 0.5, None), (1.0, 0.5, 0.3)]
+    "cap, beyond, short, top",
+    [
+        (np.inf, None, None, None),
+        (1.0, None, None, None),
+        (1.0, 0.5, None, None),
+        (1.0, 0.5, 0.3, None),
+        (1.0, 0.5, 0.3, 0.5),  # changes only up to 0.5 m above the sensor (2.2 m above the ground)
+        (1.0, 0.5, 0.3, -1.0),
+    ],
 )
-def test_kernel_matches_plain_ray_casts(scene, cap, beyond, short):
+def test_kernel_matches_plain_ray_casts(scene, cap, beyond, short, top):
     caster, true, z, dirs, measured = scene
     rng = np.random.default_rng(0)
     particles = true + rng.normal(0, [1.0, 1.0, 0.1], size=(40, 3))
     zs = np.full(40, z)
     model = ParticleRenderer(caster, margin_m=2.0, cap_m=cap, cap_beyond_m=beyond, cap_short_m=short)
-    model.set_scan(dirs, measured)
+    model.set_scan(dirs, measured, change_top_z=top)
     got = model.mean_residuals(particles, zs)
-    ref = reference_residuals(caster, particles, zs, dirs, measured, 2.0, cap, beyond, short)
+    ref = reference_residuals(
+        caster, particles, zs, dirs, measured, 2.0, cap, beyond, short, np.inf if top is None else top
+    )
     # the kernel's costs in numpy (what the tools use), ray by ray, average to the same d
     for (x, y, yaw), zi, d in zip(particles[:5], zs, got, strict=False):
         c, s = np.cos(yaw), np.sin(yaw)
@@ -69,7 +84,8 @@ def test_kernel_matches_plain_ray_casts(scene, cap, beyond, short):
             np.array([x, y, zi]), dirs @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1.0]]), measured + 2.0
         )
         e = np.where(np.isfinite(t.ranges), measured - t.ranges, -np.inf)
-        assert model.ray_costs(e).mean() == pytest.approx(d, rel=1e-4, abs=1e-4)
+        heights = (dirs[:, 2] * measured, dirs[:, 2] * np.nan_to_num(t.ranges, posinf=0.0))
+        assert model.ray_costs(e, *heights).mean() == pytest.approx(d, rel=1e-4, abs=1e-4)
     np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-4)
 
 
