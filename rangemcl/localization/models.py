@@ -395,7 +395,14 @@ def make_model(name: str, caster, settings, mesh_map) -> ScoringModel:
     short = cap if o.cap_short_m is None else o.cap_short_m
     if name == "range":
         return RangeModel(
-            ParticleRenderer(caster, margin_m=o.margin_m, cap_m=cap, cap_beyond_m=beyond, cap_short_m=short),
+            ParticleRenderer(
+                caster,
+                margin_m=o.margin_m,
+                cap_m=cap,
+                cap_beyond_m=beyond,
+                cap_short_m=short,
+                explain_beyond=o.explain_beyond,
+            ),
             o.sigma_m,
             o.movable_height_m,
         )

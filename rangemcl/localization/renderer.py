@@ -19,7 +19,10 @@ is evidence against the pose. Within ``cap_m`` both directions cost alike (an as
 the estimate towards the walls: measured, 0.3-0.8 m of bias). Only what moves changes between drives:
 with a scan's ``change_top_z`` (the height of the tallest vehicle, in the sensor frame), a ray far short of
 the map at a point above it, or far beyond a map surface above it, costs ``cap_m`` (no change explains
-it: a facade does not appear or vanish). Rays beyond the surface are also counted (``beyond``).
+it: a facade does not appear or vanish). With ``explain_beyond``, a ray measured beyond the map's surface
+counts as seen past a removed object only where the map has a surface within ``cap_m`` of its measured
+point (what the scan saw behind the object is in the map); at a wrong pose such rays mostly end where the
+map has nothing, and cost ``cap_m``. Rays beyond the surface are also counted (``beyond``).
 
 What the residuals become as a likelihood is the observation models' business
 (:mod:`rangemcl.localization.models`: Eq. 5 there, ``p(z | x) ∝ exp(−½ d² / σ_d²)``).
@@ -51,6 +54,7 @@ def particle_residual_kernel(
     cap_beyond: float,  # cost of a ray measured more than cap beyond the map's surface (a removed object)
     cap_short: float,  # cost of a ray measured more than cap short of the map's surface (an added object)
     change_top: float,  # sensor-frame z below which the world may have changed (cap_short, cap_beyond apply)
+    explain_beyond: int,  # 1: cap_beyond only where the map has a surface near the measured point
     tau: float,  # a ray agrees when its residual is below tau
     hist_top: float,  # rendered ranges binned into out_hist's columns over [0, hist_top)
     offset: int,
@@ -98,6 +102,14 @@ def particle_residual_kernel(
             if e > cap:  # far beyond the map's surface: a removed object, not a small pose error
                 if o[2] + d[2] * t < change_top:  # (the surface it passed may be such an object)
                     lim = cap_beyond
+                    if explain_beyond != 0:
+                        # ...only if what the scan saw behind it is in the map: a surface within cap of
+                        # the measured point (at a wrong pose the ray mostly ends where the map has none)
+                        _t2, m2, _f2, _n2 = closest_hit(
+                            meshes, inv_poses, moved, boxes, ow + dw * (measured[i] - cap), dw, 2.0 * cap
+                        )
+                        if m2 < 0:
+                            lim = cap
                 s_gone += structure[i]
             if e >= -cap:
                 far = 0.0
@@ -130,6 +142,10 @@ class ParticleRenderer:
         cap_m: residual cap (robust variant); ``inf`` for the plain paper model.
         cap_beyond_m: cost of a ray measured more than ``cap_m`` longer than the map's surface (default:
             ``cap_m``, symmetric).
+        cap_short_m: cost of a ray measured more than ``cap_m`` shorter than the map's surface, or meeting
+            nothing of it (default: ``cap_m``).
+        explain_beyond: ``cap_beyond_m`` only for a ray whose measured point lies within ``cap_m`` of a
+            surface of the map (behind the one it passed); others ``cap_m``.
     """
 
     def __init__(
@@ -140,6 +156,7 @@ class ParticleRenderer:
         cap_m: float = np.inf,
         cap_beyond_m: float | None = None,
         cap_short_m: float | None = None,
+        explain_beyond: bool = False,
     ):
         if cap_beyond_m is None:
             cap_beyond_m = cap_m
@@ -155,19 +172,25 @@ class ParticleRenderer:
         self.cap_m = float(min(cap_m, 3.0e38))
         self.cap_beyond_m = float(min(cap_beyond_m, self.cap_m))
         self.cap_short_m = float(min(cap_short_m, self.cap_m))
+        self.explain_beyond = bool(explain_beyond)
         self._rays: tuple | None = None
         self._change_top = 3.0e38
 
-    def ray_costs(self, errors, measured_z=None, rendered_z=None) -> np.ndarray:
+    def ray_costs(self, errors, measured_z=None, rendered_z=None, behind=None) -> np.ndarray:
         """Each ray's cost as the kernel charges it, in numpy: ``errors`` = measured − rendered range
         (``-inf`` where the map has nothing within the margin); the kernel's ``d`` is their mean. With a
         scan's ``change_top_z`` (:meth:`set_scan`), ``measured_z`` and ``rendered_z`` are the sensor-frame
-        heights of each ray's measured point and of the map's surface it met."""
+        heights of each ray's measured point and of the map's surface it met; with ``explain_beyond``,
+        ``behind`` says whether the map has a surface within ``cap_m`` of each ray's measured point."""
         e = np.asarray(errors, np.float64)
         miss = ~np.isfinite(e)
         top = self._change_top
         low = np.ones(e.shape, bool) if measured_z is None else np.asarray(measured_z) < top
         gone = np.ones(e.shape, bool) if rendered_z is None else np.asarray(rendered_z) < top
+        if self.explain_beyond:
+            if behind is None:
+                raise InputError("ray_costs: explain_beyond needs `behind`")
+            gone &= np.asarray(behind, bool)
         cost = np.minimum(np.where(miss, self.margin_m, np.abs(e)), self.cap_m)
         cost = np.where(~miss & (e > self.cap_m) & gone, self.cap_beyond_m, cost)
         return np.where((miss | (e < -self.cap_m)) & low, np.minimum(cost, self.cap_short_m), cost)
@@ -296,6 +319,7 @@ class ParticleRenderer:
             self.cap_beyond_m,
             self.cap_short_m,
             self._change_top,
+            int(self.explain_beyond),
             agree_m,
             hist_top_m,
         ]

@@ -180,6 +180,11 @@ class ObservationSettings:
     tallest vehicle: parked cars come and go, vehicles and people move). `cap_short_m` and `cap_beyond_m`
     apply only to rays whose measured point (short) or whose map surface (beyond) lies below it; above it
     nothing appears or vanishes between drives, and such a ray costs `cap_m`. `None`: every height."""
+    explain_beyond: bool = False
+    """A ray measured more than `cap_m` beyond the map's surface costs `cap_beyond_m` only where the map
+    has a surface within `cap_m` of its measured point: the scan saw past an object gone since the mapping
+    drive to what the map holds behind it. Otherwise it passed through the map into nothing the map
+    knows, which a removed object does not explain, and costs `cap_m`. One more ray cast per such ray."""
     min_range_m: float = 2.0
     """Returns closer than this, in m, are ignored (the car itself)."""
     max_range_m: float = 40.0

@@ -32,13 +32,14 @@ def scene():
 
 
 def reference_residuals(
-    caster, particles, z, dirs, measured, margin, cap, beyond=None, short=None, top=np.inf
+    caster, particles, z, dirs, measured, margin, cap, beyond=None, short=None, top=np.inf, explain=False
 ):
     """d of Eq. 5 by casting each particle's rays with RayCaster.cast and reducing in numpy: each ray's
     |measured - rendered| (``margin`` where the map has nothing within it) at most ``cap``; at most
     ``beyond`` where measured more than ``cap`` beyond the map's surface, at most ``short`` where measured
     more than ``cap`` short of it or where the map has nothing (None: ``cap``); ``beyond`` only where the
-    map's surface, ``short`` only where the measured point, lies below the sensor-frame height ``top``."""
+    map's surface, ``short`` only where the measured point, lies below the sensor-frame height ``top``;
+    with ``explain``, ``beyond`` only where the map has a surface within ``cap`` of the measured point."""
     beyond = cap if beyond is None else beyond
     short = cap if short is None else short
     out = []
@@ -49,6 +50,9 @@ def reference_residuals(
         hit = np.isfinite(t)
         e = np.where(hit, measured - t, -margin)
         gone = dirs[:, 2] * np.where(hit, t, 0.0) < top
+        if explain:  # cast from cap short of each measured point, 2 cap long
+            ahead = (dirs @ R.T) * (measured - cap)[:, None]
+            gone &= np.isfinite(caster.cast(np.array([x, y, zi]) + ahead, dirs @ R.T, 2.0 * cap).ranges)
         low = dirs[:, 2] * measured < top
         limit = np.where((e > cap) & gone, beyond, np.where((e < -cap) & low, short, cap))
         out.append(np.minimum(np.abs(e), limit).mean())
@@ -56,36 +60,51 @@ def reference_residuals(
 
 
 @pytest.mark.parametrize(
-    "cap, beyond, short, top",
+    "cap, beyond, short, top, explain",
     [
-        (np.inf, None, None, None),
-        (1.0, None, None, None),
-        (1.0, 0.5, None, None),
-        (1.0, 0.5, 0.3, None),
-        (1.0, 0.5, 0.3, 0.5),  # changes only up to 0.5 m above the sensor (2.2 m above the ground)
-        (1.0, 0.5, 0.3, -1.0),
+        (np.inf, None, None, None, False),
+        (1.0, None, None, None, False),
+        (1.0, 0.5, None, None, False),
+        (1.0, 0.5, 0.3, None, False),
+        (1.0, 0.5, 0.3, 0.5, False),  # changes only up to 0.5 m above the sensor (2.2 m above the ground)
+        (1.0, 0.5, 0.3, -1.0, False),
+        (1.0, 0.5, 0.3, None, True),
+        (1.0, 0.5, 0.3, 0.5, True),
     ],
 )
-def test_kernel_matches_plain_ray_casts(scene, cap, beyond, short, top):
+def test_kernel_matches_plain_ray_casts(scene, cap, beyond, short, top, explain):
     caster, true, z, dirs, measured = scene
     rng = np.random.default_rng(0)
     particles = true + rng.normal(0, [1.0, 1.0, 0.1], size=(40, 3))
     zs = np.full(40, z)
-    model = ParticleRenderer(caster, margin_m=2.0, cap_m=cap, cap_beyond_m=beyond, cap_short_m=short)
+    model = ParticleRenderer(
+        caster, margin_m=2.0, cap_m=cap, cap_beyond_m=beyond, cap_short_m=short, explain_beyond=explain
+    )
     model.set_scan(dirs, measured, change_top_z=top)
     got = model.mean_residuals(particles, zs)
     ref = reference_residuals(
-        caster, particles, zs, dirs, measured, 2.0, cap, beyond, short, np.inf if top is None else top
+        caster,
+        particles,
+        zs,
+        dirs,
+        measured,
+        2.0,
+        cap,
+        beyond,
+        short,
+        np.inf if top is None else top,
+        explain,
     )
     # the kernel's costs in numpy (what the tools use), ray by ray, average to the same d
     for (x, y, yaw), zi, d in zip(particles[:5], zs, got, strict=False):
         c, s = np.cos(yaw), np.sin(yaw)
-        t = caster.cast(
-            np.array([x, y, zi]), dirs @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1.0]]), measured + 2.0
-        )
-        e = np.where(np.isfinite(t.ranges), measured - t.ranges, -np.inf)
-        heights = (dirs[:, 2] * measured, dirs[:, 2] * np.nan_to_num(t.ranges, posinf=0.0))
-        assert model.ray_costs(e, *heights).mean() == pytest.approx(d, rel=1e-4, abs=1e-4)
+        world = dirs @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1.0]])
+        t = caster.cast(np.array([x, y, zi]), world, measured + 2.0).ranges
+        e = np.where(np.isfinite(t), measured - t, -np.inf)
+        heights = (dirs[:, 2] * measured, dirs[:, 2] * np.nan_to_num(t, posinf=0.0))
+        ahead = np.array([x, y, zi]) + world * (measured - min(cap, 1e9))[:, None]
+        behind = np.isfinite(caster.cast(ahead, world, 2.0 * min(cap, 1e9)).ranges) if explain else None
+        assert model.ray_costs(e, *heights, behind).mean() == pytest.approx(d, rel=1e-4, abs=1e-4)
     np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-4)
 
 
