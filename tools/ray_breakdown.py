@@ -98,7 +98,14 @@ def main() -> None:
         e = rays.ranges - rendered  # > 0: measured beyond the map's surface; -inf: the map has nothing
         measured_at = origin + dirs * rays.ranges[:, None]
         rendered_at = origin + dirs * np.where(hits.hit, hits.ranges, rays.ranges)[:, None]
-        cost = loc.model.ray_costs(e)  # the kernel's per-ray costs
+        behind = None
+        if loc.model.explain_beyond:  # is there a map surface within cap_m of each measured point?
+            cap = loc.model.cap_m
+            near = loc.caster.cast(measured_at - dirs * cap, dirs, 2.0 * cap)
+            behind = near.hit
+        # sensor-frame heights of the measured points and of the map's surfaces met
+        heights = (dirs[:, 2] * rays.ranges, dirs[:, 2] * np.where(hits.hit, hits.ranges, 0.0))
+        cost = loc.model.ray_costs(e, *heights, behind)  # the kernel's per-ray costs
         return e, cost, measured_at, rendered_at, origin[2] - height
 
     for f in (int(x) for x in a.frames.split(",") if x.strip()):

@@ -670,5 +670,11 @@ class MonteCarloLocalizer(SearchMixin, RecoveryMixin):
     def residuals(self, rays: ScanRays, particles: np.ndarray | None = None) -> np.ndarray:
         """Mean residual ``d`` of Eq. 5 of each particle (default: the filter's) for these rays."""
         p = self.particles if particles is None else np.asarray(particles, np.float64)
-        self.model.set_scan(rays.directions, rays.ranges)
+        change_top = getattr(self.scorer, "change_top_z", None)
+        self.model.set_scan(
+            rays.directions,
+            rays.ranges,
+            structure=rays.structure,
+            change_top_z=change_top(rays) if change_top is not None else None,
+        )
         return self.model.mean_residuals(p, self.sensor_z(p[:, :2])).astype(np.float64)
