@@ -214,3 +214,40 @@ def test_a_street_whose_parked_cars_are_new_beats_another_whose_mapped_cars_line
         d[short] = model.mean_residuals(a_and_b, np.full(2, 1.73))
     assert d[None][1] < 0.8 * d[None][0], d  # every short ray at the cap: street B wins
     assert d[0.3][0] < 0.9 * d[0.3][1], d  # far-short rays 0.3 m: the car's own street wins
+
+
+@pytest.mark.parametrize("sensor", ["mq-8", "hdl-64e"])
+def test_rays_seen_past_removed_cars_cost_alike_and_rays_through_the_map_into_nothing_cost_more(sensor):
+    """The map holds a row of cars parked on the street during the mapping drive; today they are gone,
+    so at the true pose many rays read beyond the map's cars, ending on the road or the facades behind
+    them (which the map holds). ``explain_beyond`` charges ``cap_beyond_m`` only to rays like those: the
+    true pose's cost is the same with it, while every wrong pose (shifted, turned, or anywhere along the
+    street) costs more, since its rays that pass through mapped surfaces mostly end where the map has
+    nothing."""
+    ground = meshgen.grid_patch((-40.0, -30.0, 0.0), (120.0, 0, 0), (0, 120.0, 0), 30, 30)
+    world = RayCaster(threads=2)
+    world.add_mesh(*meshgen.merge([ground, *_buildings(0.0, 3)]))
+    mapped = RayCaster(threads=2)
+    mapped.add_mesh(*meshgen.merge([ground, *_buildings(0.0, 3), *_parked_cars(0.0)]))
+    geo = RangeImageGeometry.for_spec(load_spec(sensor).with_columns(720))
+    dirs = geo.directions.reshape(-1, 3)
+    hits = world.cast(np.array([0.0, 0.0, 1.73]), dirs, 40.0)
+    rng = np.random.default_rng(1)
+    wrong = np.column_stack(
+        [rng.uniform(-20, 40, 30), rng.uniform(-3, 3, 30), rng.uniform(-np.pi, np.pi, 30)]
+    )
+    poses = np.vstack([[0.0, 0.0, 0.0], [0.0, 0.0, np.pi], [5.0, 0.0, 0.0], [0.0, 0.0, 0.3], wrong])
+    poses = poses[
+        (np.hypot(poses[:, 0], poses[:, 1]) > 1.0)
+        | (np.abs(poses[:, 2]) > 0.1)
+        | (np.arange(len(poses)) == 0)
+    ]
+    d = {}
+    for explain in (False, True):
+        model = ParticleRenderer(mapped, margin_m=2.0, cap_m=1.0, cap_beyond_m=0.5, explain_beyond=explain)
+        model.set_scan(dirs[hits.hit], hits.ranges[hits.hit])
+        d[explain] = model.mean_residuals(poses, np.full(len(poses), 1.73))
+    assert model.scores(poses[:1], np.full(1, 1.73))["beyond"][0] > 0.1  # the cars really are missed
+    assert d[True][0] == pytest.approx(d[False][0], abs=1e-4)
+    assert (d[True][1:] > d[False][1:] + 0.01).all(), d
+    assert d[True][0] < d[True][1:].min()
