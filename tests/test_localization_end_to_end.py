@@ -321,8 +321,8 @@ def test_search_trace_tool_follows_a_global_search(town, tmp_path):
 def test_ray_breakdown_tool_classes_every_ray_and_costs_it_as_the_kernel_does(town, tmp_path):
     """tools/ray_breakdown.py on the test drive (parked-car set 1 against the map's 0): every ray in one
     class, the classes' shares adding up, and the mean of the per-ray costs it computes equal to the
-    localizer's own mean residual at the same pose (the kernel's); a scene without parked cars is one
-    error line and exit status 2."""
+    localizer's own mean residual at the same pose (the kernel's), and the likelihood's peak along the
+    street within the offsets asked for; a scene without parked cars is one error line and exit status 2."""
     import re
     from pathlib import Path
 
@@ -341,7 +341,18 @@ def test_ray_breakdown_tool_classes_every_ray_and_costs_it_as_the_kernel_does(to
             "20",
         ]
         r = subprocess.run(
-            [sys.executable, str(tool), *args, "--particles", "500", *config],
+            [
+                sys.executable,
+                str(tool),
+                *args,
+                "--particles",
+                "500",
+                "--along",
+                "0.5",
+                "--draws",
+                "2",
+                *config,
+            ],
             capture_output=True,
             text=True,
             timeout=600,
@@ -351,6 +362,11 @@ def test_ray_breakdown_tool_classes_every_ray_and_costs_it_as_the_kernel_does(to
         assert head, r.stdout
         costs = [float(x) for x in re.findall(r"mean cost ([\d.]+) m", r.stdout)]
         assert costs == [pytest.approx(float(head[1]), abs=2e-3), pytest.approx(float(head[2]), abs=2e-3)]
+        peaks = re.search(
+            r"peaks at ([-+\d.]+) m \(all rays\), (\S+)(?: m)? \(the (\d+)% on parked cars\)", r.stdout
+        )
+        assert peaks, r.stdout
+        assert abs(float(peaks[1])) <= 0.5 and 0 <= int(peaks[3]) <= 100
         blocks = r.stdout.split("  best ")
         for block in blocks:
             shares = [int(x) for x in re.findall(r"(\d+)% of the rays", block)]

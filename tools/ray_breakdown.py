@@ -14,6 +14,11 @@ drive's scene); at the best spread pose from the map's surface where its rays me
 place that beats the truth is preferred for: when the truth's cost is carried by rays on cars that the
 map lacks while its static structure agrees, and the other place's static structure does not, the
 observation model weighs the added objects over the static world.
+
+With ``--along`` it also says where along the street the likelihood of the scan peaks near the true pose
+(offsets within ``--along`` m, summed over ``--draws`` draws of the rays), for all rays, for the rays that
+end on a parked car of either set, and for the rest: a peak off the truth that only the rays on parked
+cars put there is the pull of cars parked near, but not at, where the mapping drive's cars stood.
 """
 
 from __future__ import annotations
@@ -64,6 +69,13 @@ def main() -> None:
     ap.add_argument("--config", help="localizer settings YAML (default: the localizer's defaults)")
     ap.add_argument("--tol", type=float, default=0.3, help="metres: a ray agrees within this")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--along",
+        type=float,
+        default=0.0,
+        help="metres: also the likelihood's peak along the street, within this",
+    )
+    ap.add_argument("--draws", type=int, default=8, help="with --along: draws of the rays summed")
     a = ap.parse_args()
 
     from rangemcl.config import load_config
@@ -108,6 +120,31 @@ def main() -> None:
         cost = loc.model.ray_costs(e, *heights, behind)  # the kernel's per-ray costs
         return e, cost, measured_at, rendered_at, origin[2] - height
 
+    every_car = np.vstack(list(cars.values()))
+
+    def along_peaks(f: int, truth: np.ndarray) -> str:
+        """Where along the street the summed log-likelihood peaks: all rays, those on cars, the rest."""
+        offsets = np.round(np.arange(-a.along, a.along + 1e-9, 0.05), 2)
+        c, s = math.cos(truth[2]), math.sin(truth[2])
+        poses = truth + offsets[:, None] * np.array([c, s, 0.0])
+        z = loc.sensor_z(poses[:, :2])
+        ll = {k: np.zeros(len(offsets)) for k in ("all", "cars", "rest")}
+        share = []
+        for k in range(a.draws):
+            rays = frame_rays(seq, f, o, np.random.default_rng(a.seed + f + 7919 * k), odo)
+            _, _, measured_at, _, ground = per_ray(rays, truth)
+            low = measured_at[:, 2] - ground < CAR_TOP_M
+            on_car = near_cars(measured_at[:, :2], every_car) & low & rays.structure
+            share.append(on_car.mean())
+            for key, m in (("all", np.ones_like(on_car)), ("cars", on_car), ("rest", ~on_car)):
+                if m.sum() >= 10:
+                    ll[key] += loc.scorer.score(rays.subset(m), poses, z)[0]
+        at = {k: f"{offsets[int(np.argmax(v))]:+.2f} m" if v.any() else "-" for k, v in ll.items()}
+        return (
+            f"  along the street ({a.draws} draws): the likelihood peaks at {at['all']} (all rays), "
+            f"{at['cars']} (the {np.mean(share):.0%} on parked cars), {at['rest']} (the rest)"
+        )
+
     for f in (int(x) for x in a.frames.split(",") if x.strip()):
         if not 0 <= f < len(seq):
             raise InputError(f"{a.seq}: frame {f} is outside the sequence (0..{len(seq) - 1})")
@@ -147,6 +184,8 @@ def main() -> None:
                         f"    {cname:15s} {m.mean():5.0%} of the rays: agree {agree[m].mean():.2f} short "
                         f"{short[m].mean():.2f} long {long_[m].mean():.2f}, cost {cost[m].mean():.3f} m"
                     )
+        if a.along > 0:
+            print(along_peaks(f, truth))
 
 
 if __name__ == "__main__":
