@@ -47,6 +47,8 @@ def ray_selector(settings: ObservationSettings):
         max_range_m=o.max_range_m,
         deskew=o.deskew,
         level_with_imu=o.level_with_imu,
+        vehicle_length_m=o.vehicle_length_m,
+        movable_height_m=o.movable_height_m,
     )
 
 

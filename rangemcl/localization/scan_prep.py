@@ -83,6 +83,63 @@ def _band_weights(
     return weight / weight.sum()
 
 
+VEHICLE_CELL_M = 0.3  # grid cell of the vehicle segmentation: points in touching cells are one object
+VEHICLE_MIN_LENGTH_M = 1.0  # shorter objects (poles, trunks) are kept: they do not move between drives
+VEHICLE_MAX_WIDTH_M = 3.0  # wider objects are not a vehicle seen from the road
+
+
+def vehicle_points(
+    points: np.ndarray, sensor_height_m: float, max_length_m: float, max_height_m: float | None
+) -> np.ndarray:
+    """Which points ``(M, 3)`` (sensor frame, levelled) lie on an object that may be a parked vehicle: the
+    points more than ``STRUCTURE_M`` above the sensor's ground, grouped into objects by touching cells of
+    ``VEHICLE_CELL_M`` in (x, y); an object whose footprint (along its principal axes) is between
+    ``VEHICLE_MIN_LENGTH_M`` and ``max_length_m`` long and at most ``VEHICLE_MAX_WIDTH_M`` wide, and whose
+    highest point lies at most ``max_height_m`` above the ground (``None``: any height), is one. A car
+    against a wall, or a row of cars parked closer than about two cells, joins the larger object and
+    stays."""
+    from scipy import ndimage
+
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    out = np.zeros(len(p), bool)
+    h = p[:, 2] + sensor_height_m
+    idx = np.flatnonzero(np.isfinite(h) & (h > STRUCTURE_M))
+    if len(idx) == 0:
+        return out
+    ij = np.floor(p[idx, :2] / VEHICLE_CELL_M).astype(np.int64)
+    ij -= ij.min(axis=0)
+    occupied = np.zeros(tuple(ij.max(axis=0) + 1), bool)
+    occupied[ij[:, 0], ij[:, 1]] = True
+    labels, n = ndimage.label(occupied, structure=np.ones((3, 3), bool))
+    comp = labels[ij[:, 0], ij[:, 1]] - 1  # each point's object, 0..n-1
+    xy = p[idx, :2]
+    count = np.bincount(comp, minlength=n).astype(np.float64)
+    mean = np.stack([np.bincount(comp, xy[:, k], n) for k in (0, 1)], axis=1) / count[:, None]
+    d = xy - mean[comp]
+    cxx, cyy, cxy = (
+        np.bincount(comp, a * b, n) / count
+        for a, b in ((d[:, 0], d[:, 0]), (d[:, 1], d[:, 1]), (d[:, 0], d[:, 1]))
+    )
+    angle = 0.5 * np.arctan2(2.0 * cxy, cxx - cyy)  # each object's major axis
+    u = d[:, 0] * np.cos(angle[comp]) + d[:, 1] * np.sin(angle[comp])
+    v = -d[:, 0] * np.sin(angle[comp]) + d[:, 1] * np.cos(angle[comp])
+    extent = []
+    for a in (u, v):
+        hi = np.full(n, -np.inf)
+        lo = np.full(n, np.inf)
+        np.maximum.at(hi, comp, a)
+        np.minimum.at(lo, comp, a)
+        extent.append(hi - lo + VEHICLE_CELL_M)
+    top = np.full(n, -np.inf)
+    np.maximum.at(top, comp, h[idx])
+    vehicle = (extent[0] >= VEHICLE_MIN_LENGTH_M) & (extent[0] <= max_length_m)
+    vehicle &= extent[1] <= VEHICLE_MAX_WIDTH_M
+    if max_height_m is not None:
+        vehicle &= top <= max_height_m
+    out[idx] = vehicle[comp]
+    return out
+
+
 def select_rays(
     points: np.ndarray,
     rng: np.random.Generator,
@@ -101,6 +158,8 @@ def select_rays(
     frame_motion: np.ndarray | None = None,
     roll_pitch: tuple[float, float] | None = None,
     sensor_height_m: float = 1.73,
+    vehicle_length_m: float | None = None,
+    movable_height_m: float | None = None,
 ) -> ScanRays | None:
     """Pick, de-skew and level ``rays`` rays of one scan ``(M, 3)``; ``None`` when it has no valid point
     (finite, within ``min_range_m`` … ``max_range_m``).
@@ -113,6 +172,14 @@ def select_rays(
     p = np.asarray(points, np.float64).reshape(-1, 3)
     r = np.linalg.norm(p, axis=1)
     ok = np.isfinite(r) & (r >= min_range_m) & (r <= max_range_m)
+    valid = int(ok.sum())
+    if vehicle_length_m is not None and valid:
+        q0 = (
+            p[ok] @ rotation_roll_pitch(*roll_pitch).T if level_with_imu and roll_pitch is not None else p[ok]
+        )
+        ok[np.flatnonzero(ok)[vehicle_points(q0, sensor_height_m, vehicle_length_m, movable_height_m)]] = (
+            False
+        )
     idx = np.flatnonzero(ok)
     if len(idx) == 0:
         return None
@@ -150,4 +217,4 @@ def select_rays(
         q = q @ rotation_roll_pitch(*roll_pitch).T
     rng_ = np.linalg.norm(q, axis=1)
     structure = q[:, 2] + sensor_height_m > STRUCTURE_M  # after levelling: height above the ground
-    return ScanRays(q / rng_[:, None], rng_, int(ok.sum()), structure, float(sensor_height_m))
+    return ScanRays(q / rng_[:, None], rng_, valid, structure, float(sensor_height_m))

@@ -180,6 +180,12 @@ class ObservationSettings:
     tallest vehicle: parked cars come and go, vehicles and people move). `cap_short_m` and `cap_beyond_m`
     apply only to rays whose measured point (short) or whose map surface (beyond) lies below it; above it
     nothing appears or vanishes between drives, and such a ray costs `cap_m`. `None`: every height."""
+    vehicle_length_m: float | None = None
+    """Leave out the scan's points on objects that may be parked vehicles: objects standing on the road
+    (points in touching 0.3 m cells) from 1 m up to this long, in m (the longest parked vehicle), at
+    most 3 m wide and no taller than `movable_height_m`. Parked cars stand a few decimetres off where the
+    mapping drive's stood, or not at all, and pull the pose by that much where little else fixes it.
+    Poles and trunks (under 1 m) stay. `None`: every point."""
     explain_beyond: bool = False
     """A ray measured more than `cap_m` beyond the map's surface costs `cap_beyond_m` only where the map
     has a surface within `cap_m` of its measured point: the scan saw past an object gone since the mapping
@@ -605,6 +611,7 @@ _RULES: dict[str, str] = {
             "observation.cap_beyond_m",
             "observation.cap_short_m",
             "observation.movable_height_m",
+            "observation.vehicle_length_m",
             "convergence.tiles",
             "convergence.cluster_m",
             "convergence.min_cluster_particles",
