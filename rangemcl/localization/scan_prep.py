@@ -86,6 +86,8 @@ def _band_weights(
 VEHICLE_CELL_M = 0.3  # grid cell of the vehicle segmentation: points in touching cells are one object
 VEHICLE_MIN_LENGTH_M = 1.0  # shorter objects (poles, trunks) are kept: they do not move between drives
 VEHICLE_MAX_WIDTH_M = 3.0  # wider objects are not a vehicle seen from the road
+VEHICLE_AZIMUTH_BIN = np.radians(0.5)  # azimuth bins of the check for objects in front of an object's ends
+VEHICLE_OCCLUDER_M = 0.5  # something this much nearer beside an object's end hides part of it
 
 
 def vehicle_points(
@@ -95,9 +97,10 @@ def vehicle_points(
     points more than ``STRUCTURE_M`` above the sensor's ground, grouped into objects by touching cells of
     ``VEHICLE_CELL_M`` in (x, y); an object whose footprint (along its principal axes) is between
     ``VEHICLE_MIN_LENGTH_M`` and ``max_length_m`` long and at most ``VEHICLE_MAX_WIDTH_M`` wide, and whose
-    highest point lies at most ``max_height_m`` above the ground (``None``: any height), is one. A car
-    against a wall, or a row of cars parked closer than about two cells, joins the larger object and
-    stays."""
+    highest point lies at most ``max_height_m`` above the ground (``None``: any height), is one, unless
+    something nearer stands just beside one of its ends as the sensor sees it (then part of it is hidden
+    and it may be longer: a wall seen between parked cars). A car against a wall, or cars parked bumper
+    to bumper, join the larger object and stay."""
     from scipy import ndimage
 
     p = np.asarray(points, np.float64).reshape(-1, 3)
@@ -136,6 +139,22 @@ def vehicle_points(
     vehicle &= extent[1] <= VEHICLE_MAX_WIDTH_M
     if max_height_m is not None:
         vehicle &= top <= max_height_m
+    # an object cut short by something in front of it (a wall seen between parked cars, a facade behind
+    # a pole) is longer than it looks: one whose end, seen from the sensor, meets a nearer object is kept
+    az = np.arctan2(xy[:, 1], xy[:, 0])
+    rng_xy = np.hypot(xy[:, 0], xy[:, 1])
+    bins = int(round(2.0 * np.pi / VEHICLE_AZIMUTH_BIN))
+    b = np.floor((az + np.pi) / VEHICLE_AZIMUTH_BIN).astype(np.int64) % bins
+    nearest = np.full(bins, np.inf)
+    np.minimum.at(nearest, b, rng_xy)
+    for k in np.flatnonzero(vehicle):
+        mine = comp == k
+        rel = np.angle(np.exp(1j * (az[mine] - np.angle(np.exp(1j * az[mine]).mean()))))
+        for end, sign in ((rel.argmin(), -1), (rel.argmax(), 1)):
+            at = b[mine][end]
+            beyond = nearest[(at + sign * np.arange(1, 3)) % bins]
+            if (beyond < rng_xy[mine][end] - VEHICLE_OCCLUDER_M).any():
+                vehicle[k] = False
     out[idx] = vehicle[comp]
     return out
 
