@@ -88,6 +88,8 @@ VEHICLE_MIN_LENGTH_M = 1.0  # shorter objects (poles, trunks) are kept: they do 
 VEHICLE_MAX_WIDTH_M = 3.0  # wider objects are not a vehicle seen from the road
 VEHICLE_AZIMUTH_BIN = np.radians(0.5)  # azimuth bins of the check for objects in front of an object's ends
 VEHICLE_OCCLUDER_M = 0.5  # something this much nearer beside an object's end hides part of it
+VEHICLE_TOP_BEAM_MARGIN = np.radians(0.25)  # an object this near the top beam's elevation reaches it
+VEHICLE_CUT_TOP_M = 2.5  # an object seen higher than this, cut off by the top beam, may be taller still
 
 
 def vehicle_points(
@@ -99,8 +101,10 @@ def vehicle_points(
     ``VEHICLE_MIN_LENGTH_M`` and ``max_length_m`` long and at most ``VEHICLE_MAX_WIDTH_M`` wide, and whose
     highest point lies at most ``max_height_m`` above the ground (``None``: any height), is one, unless
     something nearer stands just beside one of its ends as the sensor sees it (then part of it is hidden
-    and it may be longer: a wall seen between parked cars). A car against a wall, or cars parked bumper
-    to bumper, join the larger object and stay."""
+    and it may be longer: a wall seen between parked cars), or unless it is seen higher than a car
+    (``VEHICLE_CUT_TOP_M``) up to the scan's top beam (its top is unseen: a wall or a facade near a
+    sensor whose beams end a few metres up). A car against a wall, or cars parked bumper to bumper, join
+    the larger object and stay."""
     from scipy import ndimage
 
     p = np.asarray(points, np.float64).reshape(-1, 3)
@@ -147,8 +151,15 @@ def vehicle_points(
     b = np.floor((az + np.pi) / VEHICLE_AZIMUTH_BIN).astype(np.int64) % bins
     nearest = np.full(bins, np.inf)
     np.minimum.at(nearest, b, rng_xy)
+    # ... and so is an object seen up to more than a car's height that reaches the sensor's top beam: its
+    # top is unseen (a wall or a facade near the sensor; a car there is seen over)
+    top_beam = float(np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1])).max())
+    elevation = np.arctan2(p[idx, 2], rng_xy)
     for k in np.flatnonzero(vehicle):
         mine = comp == k
+        if top[k] > VEHICLE_CUT_TOP_M and elevation[mine].max() > top_beam - VEHICLE_TOP_BEAM_MARGIN:
+            vehicle[k] = False
+            continue
         rel = np.angle(np.exp(1j * (az[mine] - np.angle(np.exp(1j * az[mine]).mean()))))
         for end, sign in ((rel.argmin(), -1), (rel.argmax(), 1)):
             at = b[mine][end]

@@ -282,13 +282,18 @@ def test_prepare_rays_deskews_with_the_frame_motion():
         rel = se2_between(pose, np.array([p[0], p[1], 0.0]))
         pts.append([rel[0], rel[1], p[2]])
     pts = np.array(pts, np.float32)
-    settings = ObservationSettings(rays=10_000, min_range_m=0.1, max_range_m=100.0)
+    # (every point kept: scattered random points may group into car-sized objects)
+    settings = ObservationSettings(rays=10_000, min_range_m=0.1, max_range_m=100.0, vehicle_length_m=None)
     rays = prepare_rays(pts, settings, rng, fire_time_s=t, frame_period_s=0.1, frame_motion=motion)
     got = rays.directions * rays.ranges[:, None]
     want = np.array([[*se2_between(end, np.array([p[0], p[1], 0.0]))[:2], p[2]] for p in world_pts])
     np.testing.assert_allclose(got, want, atol=2e-3)
     raw = prepare_rays(
-        pts, ObservationSettings(rays=10_000, min_range_m=0.1, max_range_m=100.0, deskew=False), rng
+        pts,
+        ObservationSettings(
+            rays=10_000, min_range_m=0.1, max_range_m=100.0, deskew=False, vehicle_length_m=None
+        ),
+        rng,
     )
     assert np.abs(raw.directions * raw.ranges[:, None] - want).max() > 0.5  # the skew was real
 
