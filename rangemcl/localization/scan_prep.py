@@ -183,13 +183,13 @@ def select_rays(
     max_range_m: float,
     deskew: bool,
     level_with_imu: bool,
+    vehicle_length_m: float | None,
+    movable_height_m: float | None,
     fire_time_s: np.ndarray | None = None,
     frame_period_s: float | None = None,
     frame_motion: np.ndarray | None = None,
     roll_pitch: tuple[float, float] | None = None,
     sensor_height_m: float = 1.73,
-    vehicle_length_m: float | None = None,
-    movable_height_m: float | None = None,
 ) -> ScanRays | None:
     """Pick, de-skew and level ``rays`` rays of one scan ``(M, 3)``; ``None`` when it has no valid point
     (finite, within ``min_range_m`` … ``max_range_m``).

@@ -82,7 +82,7 @@ def test_the_rays_leave_out_the_vehicles_points():
         level_with_imu=False,
         sensor_height_m=HEIGHT,
     )
-    every = select_rays(pts, rng, **common)
+    every = select_rays(pts, rng, vehicle_length_m=None, movable_height_m=None, **common)
     kept = select_rays(pts, rng, vehicle_length_m=7.0, movable_height_m=4.0, **common)
     on_vehicle = vehicle_points(pts, HEIGHT, 7.0, 4.0)
     r = np.linalg.norm(pts, axis=1)
