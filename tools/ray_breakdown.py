@@ -124,7 +124,7 @@ def main() -> None:
 
     def along_peaks(f: int, truth: np.ndarray) -> str:
         """Where along the street the summed log-likelihood peaks: all rays, those on cars, the rest."""
-        offsets = np.round(np.arange(-a.along, a.along + 1e-9, 0.05), 2)
+        offsets = np.round(np.arange(-a.along, a.along + 1e-9, 0.05), 2) + 0.0  # (+0.0: no -0.00)
         c, s = math.cos(truth[2]), math.sin(truth[2])
         poses = truth + offsets[:, None] * np.array([c, s, 0.0])
         z = loc.sensor_z(poses[:, :2])
