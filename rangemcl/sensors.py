@@ -54,6 +54,10 @@ _SCALAR_KEYS = (
 )
 
 
+_RETURN_KEYS = ("range_at_10pct_m", "range_at_80pct_m", "range_noise_weak_m")
+INTENSITY_SCALES = ("reflectivity_8bit", "unit")
+
+
 def _default_mount() -> np.ndarray:
     return transform_from_xyz_rpy(DEFAULT_MOUNT_XYZ_M, (0.0, 0.0, 0.0))
 
@@ -73,7 +77,13 @@ class LidarSpec:
         rotation_hz: sweeps per second.
         min_range_m, max_range_m: no return outside this interval.
         range_noise_m: 1-sigma Gaussian range noise.
-        dropout_prob: probability that a return is dropped.
+        dropout_prob: probability that a return is dropped (on top of the realistic return model).
+        range_at_10pct_m, range_at_80pct_m: the datasheet's detection range for a 10 % and an 80 %
+            reflectivity target (the realistic return model's detection threshold and extinction).
+        range_noise_weak_m: 1-sigma range noise of returns at the detection threshold (realistic model).
+        intensity_scale: what the sensor reports as intensity: ``reflectivity_8bit`` (0-100 diffuse,
+            101-255 retro-reflective: Velodyne's calibrated reflectivity, Ouster's reflectivity channel)
+            or ``unit`` (0..1, as the KITTI HDL-64E scans store it).
         T_base_sensor: (4, 4) mounting, sensor frame to car base frame (default 1.73 m up, level).
         source: where the facts come from and which values are assumed.
 
@@ -93,6 +103,10 @@ class LidarSpec:
     max_range_m: float
     range_noise_m: float
     dropout_prob: float = 0.0
+    range_at_10pct_m: float | None = None
+    range_at_80pct_m: float | None = None
+    range_noise_weak_m: float | None = None
+    intensity_scale: str = "reflectivity_8bit"
     T_base_sensor: np.ndarray = field(default_factory=_default_mount, repr=False)
     source: str = field(default="", repr=False)
 
@@ -145,6 +159,24 @@ class LidarSpec:
             self._fail(f"dropout_prob must be in [0, 1), got {self.dropout_prob}")
         if self.beam_origin_radius_m < 0:
             self._fail(f"beam_origin_radius_m must be >= 0, got {self.beam_origin_radius_m}")
+        for key in _RETURN_KEYS:
+            value = getattr(self, key)
+            if value is None:
+                continue
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+                self._fail(f"{key} must be a finite number, got {reprlib.repr(value)}")
+            if value < 0 or (value == 0 and key != "range_noise_weak_m"):
+                self._fail(f"{key} must be {'>= 0' if key == 'range_noise_weak_m' else '> 0'}, got {value}")
+            set_(self, key, float(value))
+        r10, r80 = self.range_at_10pct_m, self.range_at_80pct_m
+        if (r10 is None) != (r80 is None):
+            self._fail("range_at_10pct_m and range_at_80pct_m go together (give both or neither)")
+        if r10 is not None and r10 >= r80:
+            self._fail(f"range_at_10pct_m ({r10}) must be below range_at_80pct_m ({r80})")
+        if self.intensity_scale not in INTENSITY_SCALES:
+            self._fail(
+                f"intensity_scale must be one of {', '.join(INTENSITY_SCALES)}, got {self.intensity_scale!r}"
+            )
         set_(self, "T_base_sensor", self._rigid_transform(self.T_base_sensor))
 
     def _fail(self, problem: str) -> NoReturn:
@@ -221,7 +253,11 @@ class LidarSpec:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict (str, float, int, lists) in the YAML schema; ``spec_from_dict`` reads it back."""
-        data = {key: getattr(self, key) for key in _SCHEMA if key != "mount"}
+        data = {
+            key: getattr(self, key)
+            for key in _SCHEMA
+            if key != "mount" and not (key in _RETURN_KEYS and getattr(self, key) is None)
+        }
         data = {
             key: value.tolist() if isinstance(value, np.ndarray) else value for key, value in data.items()
         }
@@ -257,6 +293,10 @@ _SCHEMA: dict[str, tuple[str, bool]] = {
     "max_range_m": ("float", True),
     "range_noise_m": ("float", True),
     "dropout_prob": ("float", False),
+    "range_at_10pct_m": ("float", False),
+    "range_at_80pct_m": ("float", False),
+    "range_noise_weak_m": ("float", False),
+    "intensity_scale": ("str", False),
     "mount": ("mount", False),
 }
 _MOUNT_KEYS = ("xyz_m", "rpy_deg")

@@ -83,6 +83,11 @@ def record(
     ),
     viz: bool = typer.Option(False, help="Stream the scene, car, sweeps and actors to the rerun viewer."),
     viz_out: Path = typer.Option(None, help="Save the drive as a rerun .rrd file (headless)."),
+    sensor_model: str = typer.Option(
+        "ideal",
+        help="ideal (every surface returns every ray; intensity 0) or realistic (materials decide "
+        "returns, range noise and intensity).",
+    ),
 ) -> None:
     """Drive a route and record LiDAR, ground-truth poses, odometry and IMU in the KITTI layout or as a
     ROS bag / MCAP (PointCloud2 with per-point time and ring, IMU, odometry, TF, truth, actors).
@@ -112,6 +117,7 @@ def record(
             fmt=fmt,
             viz=viz,
             viz_out=viz_out,
+            sensor_model=sensor_model,
         )
     except KeyboardInterrupt:
         from rangemcl.datasets.sources import open_source

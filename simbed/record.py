@@ -19,6 +19,8 @@ from simbed.scenes.lanes import MAX_SPEED_MPS, check_lane, lane_from_waypoints, 
 from simbed.scenes.routes import Route, is_waypoint_file, load_waypoints, make_route
 from simbed.sim.actors import ACTOR_KINDS, actors_along_route, check_actor_paths, read_actor_paths
 from simbed.sim.drive import Drive
+from simbed.sim.lidar import SENSOR_MODELS
+from simbed.sim.returns import ReturnModel
 from simbed.sim.world import World, resolve_scene
 
 
@@ -63,6 +65,7 @@ def record(
     fmt: str = "kitti",
     viz: bool = False,
     viz_out: str | os.PathLike | None = None,
+    sensor_model: str = "ideal",
 ) -> RecordSummary:
     """Drive ``route`` in ``scene`` and write ``frames`` LiDAR frames to ``out``.
 
@@ -80,6 +83,8 @@ def record(
     (:class:`rangemcl.datasets.rosbag.BagWriter`: PointCloud2 with per-point time and ring, IMU, odometry, TF,
     the true pose and the actors' boxes), which is complete only once closed. ``viz`` streams the scene,
     the car, its sweeps and the actors to the rerun viewer, ``viz_out`` saves them as an ``.rrd``.
+    ``sensor_model`` is ``ideal`` or ``realistic`` (:mod:`simbed.sim.lidar`); the realistic one writes
+    each point's intensity.
     """
     out = Path(out)
     if frames < 1:
@@ -91,6 +96,10 @@ def record(
     if seed < 0:
         raise InputError(f"seed must be >= 0, got {seed}")
     spec = load_spec(sensor)
+    if sensor_model not in SENSOR_MODELS:
+        raise InputError(f"sensor model {sensor_model!r}: expected {', '.join(SENSOR_MODELS)}")
+    if sensor_model == "realistic":
+        ReturnModel.for_spec(spec)  # the spec has what the model needs, before anything is written
     if fmt not in ("kitti", *BAG_FORMATS):
         raise InputError(f"format {fmt!r}: expected kitti, {', '.join(BAG_FORMATS)}")
     if fmt != "kitti":
@@ -137,7 +146,7 @@ def record(
         dropped = check_actor_paths(world.actors, ground, world.caster, world.static_handle, source)
         for line in dropped:
             print(f"simbed: warning: {line}", file=sys.stderr)
-    drive = Drive(world, path, spec, rng, skew=skew)
+    drive = Drive(world, path, spec, rng, skew=skew, sensor_model=sensor_model)
     viewer = DriveViewer.open(f"simbed record {Path(scene).stem} {route}", out_rrd=viz_out, spawn=viz)
     if viewer.enabled:
         viewer.log_map(*world.static_triangles)
@@ -157,6 +166,7 @@ def record(
         "skew": skew,
         "physics_timestep_s": float(world.model.opt.timestep),
         "sensor": spec.to_dict(),
+        "sensor_model": sensor_model,
         "frames_requested": frames,
         "point_labels": {"0": "static world", "1": "moving actor"},
         "odometry": drive.odometry_errors(),
@@ -178,6 +188,7 @@ def record(
                 s.points,
                 pose=frame.T_world_sensor,
                 time_s=frame.time_s,
+                intensity=s.intensity,
                 odometry=frame.T_odom_sensor,
                 imu_roll_pitch=frame.imu_roll_pitch,
                 point_meta={"ring": s.ring, "column": s.column, "time_s": s.time_s, "label": s.label},

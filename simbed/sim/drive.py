@@ -13,7 +13,8 @@ import numpy as np
 from rangemcl.errors import InputError
 from rangemcl.sensors import LidarSpec
 from simbed.scenes.routes import Route
-from simbed.sim.lidar import SimLidar, Sweep
+from simbed.sim.lidar import SENSOR_MODELS, SimLidar, Sweep
+from simbed.sim.returns import ReturnModel
 from simbed.sim.vehicle import OdometryNoise, RouteFollower, WheelGyroOdometry, wheel_torque
 from simbed.sim.world import World
 
@@ -42,6 +43,7 @@ class Drive:
         skew: per-column sensor poses (motion skews the scan), on by default.
         chunks_per_sweep: how often, within a sweep, the world is re-posed for casting.
         settle_s: physics time to let the car settle on its wheels before the first sweep.
+        sensor_model: ``ideal`` or ``realistic`` (:mod:`simbed.sim.lidar`).
     """
 
     def __init__(
@@ -56,6 +58,7 @@ class Drive:
         cruise_mps: float = 8.0,
         settle_s: float = 1.0,
         odometry_noise: OdometryNoise | None = None,
+        sensor_model: str = "ideal",
     ):
         if world.car is None:
             raise InputError(f"{world.path}: the scene has no car to drive")
@@ -64,7 +67,21 @@ class Drive:
         self.car = world.car
         self.controller = RouteFollower(self.car, route, cruise_mps=cruise_mps)
         self.odometry = WheelGyroOdometry(self.car, rng, odometry_noise)
-        self.lidar = SimLidar(spec, world.caster, rng, skew=skew, actor_mesh_ids=world.actor_handles)
+        if sensor_model not in SENSOR_MODELS:
+            raise InputError(
+                f"unknown sensor model {sensor_model!r} (choose from {', '.join(SENSOR_MODELS)})"
+            )
+        realistic = sensor_model == "realistic"
+        self.sensor_model = sensor_model
+        self.lidar = SimLidar(
+            spec,
+            world.caster,
+            rng,
+            skew=skew,
+            actor_mesh_ids=world.actor_handles,
+            materials=world.materials if realistic else None,
+            returns=ReturnModel.for_spec(spec) if realistic else None,
+        )
         self.chunks = max(1, int(chunks_per_sweep))
         self.dt = float(world.model.opt.timestep)
         self.frame_index = 0

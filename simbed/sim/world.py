@@ -17,6 +17,7 @@ from simbed.scenes.scene_ground import SceneGround
 from simbed.scenes.towngen import TownInfo, load_town_info
 from simbed.sim.actors import Actor, add_actor_bodies, bind_actors, place_actors, plan_actors
 from simbed.sim.geometry import body_pose, split_static_dynamic
+from simbed.sim.materials import SceneMaterials
 from simbed.sim.vehicle import CarHandles
 
 # bodies that belong to one variant of a scene: parked_v{k}_* (generated towns' parked cars) and
@@ -135,21 +136,36 @@ class World:
             segments=segments,
         )
         self.caster = RayCaster(device=device, threads=threads)
-        v, f, _ = parts.static
+        v, f, static_geoms = parts.static
         self.static_handle = self.caster.add_mesh(v, f, name="static")
         self.static_triangles = (v, f)
         self.dynamic_handles: dict[int, int] = {}
+        self._face_geoms = {self.static_handle: static_geoms}  # handle -> geom id of each face given
         for bm in parts.dynamic:
             h = self.caster.add_mesh(
                 bm.vertices, bm.faces, name=bm.name, movable=True, pose=body_pose(self.data, bm.body_id)
             )
             self.dynamic_handles[bm.body_id] = h
+            self._face_geoms[h] = bm.geom_ids_per_face
+        self._materials: SceneMaterials | None = None
         actor_bodies = {a.body_id for a in self.actors}
         self.actor_handles = [h for b, h in self.dynamic_handles.items() if b in actor_bodies]
         # scenes without a terrain sidecar: the ground is found in their own static geometry
         self.scene_ground = (
             SceneGround.from_triangles(self.caster, self.static_handle, v) if self.town is None else None
         )
+
+    @property
+    def materials(self) -> SceneMaterials:
+        """What every surface is made of (:mod:`simbed.sim.materials`), built on first use (the realistic
+        sensor needs it; the ideal one does not)."""
+        if self._materials is None:
+            mats = SceneMaterials(self.model, self.data, self.path, self.town)
+            infos = self.caster.meshes
+            for handle, geoms in self._face_geoms.items():
+                mats.add_mesh(handle, geoms, infos[handle].face_map)
+            self._materials = mats
+        return self._materials
 
     @property
     def graph(self) -> RoadGraph:

@@ -8,7 +8,12 @@ variant, moving actors); each step is one LiDAR frame. The observation is a ``Di
   beam/column grid: ``env.unwrapped.geometry`` back-projects it);
 * ``odometry``: ``(dx, dy, dyaw)`` float32, the car's own measured motion since the previous frame in the
   previous frame's pose (wheel odometry and gyro, with their drift);
-* ``imu``: ``(roll, pitch)`` float32 radians.
+* ``imu``: ``(roll, pitch)`` float32 radians;
+* ``intensity_image``: ``(beams, columns)`` float32, each return's intensity on the sensor's scale (0-255
+  or 0-1: the spec's ``intensity_scale``), 0 where there is none; all 0 for the ideal sensor.
+
+``sensor_model`` is ``ideal`` (every surface returns every ray) or ``realistic`` (materials decide returns,
+noise and intensity: :mod:`simbed.sim.lidar`).
 
 The **action** is the agent's pose estimate ``(x, y, yaw)`` of the sensor in the world. The reward is
 ``−min(position error, cap) − yaw_weight · min(|yaw error| in degrees, 180)`` of the estimate for the frame
@@ -59,8 +64,10 @@ class _SimEnv(gym.Env):
         actors: int = 0,
         device: str = "cpu",
         render_mode: str | None = None,
+        sensor_model: str = "ideal",
     ):
         self.scene = scene
+        self.sensor_model = sensor_model
         self.lidar_spec = load_spec(sensor)
         if columns:
             self.lidar_spec = self.lidar_spec.with_columns(int(columns))
@@ -86,6 +93,7 @@ class _SimEnv(gym.Env):
                     dtype=np.float32,
                 ),
                 "imu": spaces.Box(-math.pi / 2, math.pi / 2, (2,), np.float32),
+                "intensity_image": spaces.Box(0.0, 255.0, (h, w), np.float32),
             }
         )
         self.world: World | None = None
@@ -103,13 +111,15 @@ class _SimEnv(gym.Env):
         )
         t = self.world.town
         self.route = make_route(self.route_name, self.world.graph, t.lane_width_m, t.road_width_m)
-        self.drive = Drive(self.world, self.route, self.lidar_spec, rng)
+        self.drive = Drive(self.world, self.route, self.lidar_spec, rng, sensor_model=self.sensor_model)
         return rng
 
     def _observe(self, frame: Frame) -> dict[str, np.ndarray]:
         s = frame.sweep
         rows = np.asarray(self.lidar_spec.row_of_beam)[s.ring.astype(np.int64)]
         image = self.geometry.project(s.points, rows=rows, cols=s.column.astype(np.int64)).ranges
+        intensity = np.zeros(self.geometry.shape, np.float32)
+        intensity[rows, s.column.astype(np.int64)] = s.intensity
         odom = pose2d(frame.T_odom_sensor)
         delta = se2_between(self._last_odom, odom)
         self._last_odom = odom
@@ -118,6 +128,7 @@ class _SimEnv(gym.Env):
             "range_image": np.clip(image, 0.0, self.lidar_spec.max_range_m).astype(np.float32),
             "odometry": np.clip(delta, -MAX_STEP_M, MAX_STEP_M).astype(np.float32),
             "imu": np.clip(np.asarray(frame.imu_roll_pitch), -math.pi / 2, math.pi / 2).astype(np.float32),
+            "intensity_image": intensity,
         }
 
     def _first_frame(self) -> Frame:

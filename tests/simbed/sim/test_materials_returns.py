@@ -1,0 +1,377 @@
+"""Materials and the realistic return model against analytic references: the datasheet's two detection
+ranges met exactly, Lambertian and specular reflectivity, window and marking patterns on known
+coordinates, material resolution for a scene with a sidecar, and the realistic sensor on a tiny scene
+(detection rates against the model's probability, glass passing the beam, intensity of known surfaces)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from rangemcl.errors import InputError
+from rangemcl.sensors import load_spec
+from simbed.sim.lidar import SimLidar
+from simbed.sim.materials import Material, MaterialTable, RoadMarkings, WindowGrid
+from simbed.sim.returns import DATASHEET_DETECTION, SPECULAR_LOBE_RAD, ReturnModel, sensor_extinction
+from simbed.sim.world import World
+
+
+# ---------------------------------------------------------------------- the return model
+@pytest.mark.parametrize("seed", range(5))
+def test_the_datasheet_ranges_are_where_10_and_80_percent_targets_are_detected(seed):
+    rng = np.random.default_rng(seed)
+    r10 = float(rng.uniform(10, 80))
+    r80 = r10 * float(rng.uniform(1.2, 2.8))  # below sqrt(8): the sensor needs an extinction
+    s_th, alpha = sensor_extinction(r10, r80)
+    assert alpha > 0
+    model = ReturnModel(s_th, alpha, 0.02, 0.1, "reflectivity_8bit")
+    assert model.range_limit_m(0.10) == pytest.approx(r10, rel=1e-6)
+    assert model.range_limit_m(0.80) == pytest.approx(r80, rel=1e-6)
+    # at the stated range the sensor detects with the datasheet's probability, beyond it less
+    assert model.detection_probability(model.signal(0.8, r80)) == pytest.approx(DATASHEET_DETECTION)
+    p = model.detection_probability(model.signal(0.8, np.linspace(1, 3 * r80, 50)))
+    assert np.all(np.diff(p) <= 1e-12) and p[-1] < 0.01
+
+
+def test_ranges_that_the_inverse_square_explains_need_no_extinction():
+    s_th, alpha = sensor_extinction(40.0, 40.0 * math.sqrt(8.0) * 1.1)
+    assert alpha == 0.0
+    assert ReturnModel(s_th, alpha, 0.02, 0.1, "unit").range_limit_m(0.1) == pytest.approx(40.0)
+    with pytest.raises(InputError, match="below the range at 80"):
+        sensor_extinction(50.0, 40.0)
+
+
+def test_effective_reflectivity_lambertian_glint_and_retro():
+    cos = np.cos(np.radians([0.0, 30.0, 60.0, 85.0]))
+    lam = ReturnModel.effective_reflectivity(0.5, 0.0, 0.0, cos)
+    np.testing.assert_allclose(lam, 0.5 * cos)
+    glint = ReturnModel.effective_reflectivity(0.0, 0.04, 0.0, cos)
+    assert glint[0] == pytest.approx(0.04 / SPECULAR_LOBE_RAD**2)  # a window seen face on: very bright
+    assert glint[1] < 1e-6  # and dark 30 degrees off
+    retro = ReturnModel.effective_reflectivity(0.0, 0.0, 20.0, cos)
+    np.testing.assert_allclose(retro, 20.0 * cos**2)
+
+
+def test_noise_grows_from_the_strong_to_the_weak_figure_at_the_threshold():
+    m = ReturnModel(1e-4, 0.0, 0.02, 0.10, "unit")
+    assert m.noise_sigma(1e-4) == pytest.approx(0.10)
+    assert m.noise_sigma(1e2) == pytest.approx(0.02, abs=1e-4)
+    s = np.geomspace(1e-6, 1e2, 40)
+    assert np.all(np.diff(m.noise_sigma(s)) <= 0)
+
+
+def test_intensity_scales():
+    m = ReturnModel(1e-4, 0.0, 0.02, 0.1, "reflectivity_8bit")
+    np.testing.assert_array_equal(m.intensity([0.0, 0.1, 0.655, 1.0]), [0, 10, 66, 100])
+    bright = m.intensity([2.0, 10.0, 100.0, 1e4])
+    assert np.all(bright > 100) and np.all(np.diff(bright) >= 0) and bright[-1] == 255
+    u = ReturnModel(1e-4, 0.0, 0.02, 0.1, "unit")
+    np.testing.assert_allclose(u.intensity([0.0, 0.3, 5.0]), [0.0, 0.3, 1.0], rtol=1e-6)
+
+
+def test_the_presets_give_their_return_figures():
+    for name in ("mq-8", "vlp-16", "hdl-32e", "hdl-64e", "os1-64", "os1-128"):
+        spec = load_spec(name)
+        model = ReturnModel.for_spec(spec)
+        assert model.range_limit_m(0.1) == pytest.approx(spec.range_at_10pct_m, rel=1e-3)
+        assert spec.range_at_80pct_m <= spec.max_range_m * 1.5
+
+
+def test_a_spec_without_return_figures_is_one_clear_error():
+    spec = dataclasses.replace(load_spec("vlp-16"), range_at_10pct_m=None, range_at_80pct_m=None)
+    with pytest.raises(InputError, match="realistic sensor model needs range_at_10pct_m"):
+        ReturnModel.for_spec(spec)
+    with pytest.raises(InputError, match="go together"):
+        dataclasses.replace(load_spec("vlp-16"), range_at_10pct_m=None)
+
+
+# ---------------------------------------------------------------------- materials
+def test_materials_refuse_impossible_values():
+    with pytest.raises(InputError, match="more light than arrives"):
+        Material("x", 0.6, mirror=0.2, transmission=0.5)
+    with pytest.raises(InputError, match="reflectivity must be a number in"):
+        Material("x", 1.5)
+    table = MaterialTable.load()
+    assert table.named_in("old_asphalt_road") == "asphalt" and table.named_in("glass") == "glass"
+    assert table.named_in("foo") is None
+
+
+def test_window_grid_on_a_known_facade():
+    half = np.array([[10.0, 4.0, 4.5]])  # a 20 x 8 m box, 9 m tall: 3 floors
+    bays = math.floor((20 - 2 * WindowGrid.MARGIN_M) / WindowGrid.BAY_M)  # 7 bays on the long façade
+    z_window = -4.5 + WindowGrid.SILL_M + WindowGrid.HEIGHT_M / 2  # middle of the ground floor's window
+    centre_u = -bays * WindowGrid.BAY_M / 2 + WindowGrid.BAY_M / 2  # middle of the first bay
+    pts = np.array(
+        [
+            [centre_u, -4.0, z_window],  # window, long façade
+            [centre_u + WindowGrid.BAY_M / 2, -4.0, z_window],  # between two windows
+            [centre_u, -4.0, -4.5 + 0.3],  # under the sill
+            [centre_u, -4.0, z_window + WindowGrid.FLOOR_M],  # the next floor's window
+            [-9.9, -4.0, z_window],  # the corner margin
+            [centre_u, 0.0, 4.5],  # the roof
+            [10.0, 0.0, z_window],  # the short façade (8 m: 2 bays), at its middle: between windows
+            [10.0, WindowGrid.BAY_M / 2, z_window],  # the short façade's window
+        ]
+    )
+    got = WindowGrid.glass(pts, np.repeat(half, len(pts), 0))
+    np.testing.assert_array_equal(got, [True, False, False, True, False, False, False, True])
+
+
+def test_road_markings_from_the_road_graph():
+    nodes = np.array([[0.0, 0.0], [100.0, 0.0], [100.0, 50.0], [100.0, -50.0], [150.0, 0.0]])
+    edges = np.array([[0, 1], [1, 2], [1, 3], [1, 4]])  # node 1: a junction
+    mk = RoadMarkings(nodes, edges, road_width_m=8.0)
+    edge_y = 4.0 - mk.EDGE_INSET_M
+    pts = np.array(
+        [
+            [31.0, 0.02],  # centre line, in a dash (27..30 painted? 27+3: s mod 9 = 4 -> gap)
+            [28.0, 0.02],  # s mod 9 = 1: a dash
+            [28.0, 0.3],  # beside the centre line
+            [40.0, edge_y],  # the edge line (solid)
+            [40.0, -edge_y + 0.05],
+            [40.0, 2.0],  # the lane's middle
+            [97.0, edge_y],  # within a road width of the junction: none
+        ]
+    )
+    np.testing.assert_array_equal(mk.painted(pts), [False, True, False, True, True, False, False])
+
+
+SCENE = """<mujoco model="mats">
+  <asset>
+    <material name="old_asphalt" rgba="0.2 0.2 0.2 1"/>
+    <material name="building2" rgba="0.7 0.5 0.4 1"/>
+    <material name="facade" rgba="0.7 0.7 0.7 1"/>
+  </asset>
+  <worldbody>
+    <geom name="ground" type="plane" size="50 50 0.1" material="old_asphalt"/>
+    <geom name="house" type="box" pos="20 0 4.5" size="4 10 4.5" material="building2"/>
+    <geom name="shop" type="box" pos="-20 0 3" size="1 5 3" material="facade"/>
+    <geom name="shop_window_1" type="box" pos="-18.95 0 1.5" size="0.01 2 1"/>
+    <geom name="thing" type="sphere" pos="0 20 1" size="1"/>
+    <body name="parked_v0_3" pos="0 -10 0">
+      <geom name="parked_v0_3_body" type="box" pos="0 0 0.6" size="2 0.9 0.4" rgba="0.95 0.95 0.95 1"/>
+      <geom name="parked_v0_3_cabin" type="box" pos="0 0 1.3" size="1 0.85 0.3" rgba="0.1 0.1 0.1 1"/>
+    </body>
+  </worldbody>
+</mujoco>"""
+
+
+def _geom_materials(world: World) -> dict[str, str]:
+    import mujoco
+
+    mats = world.materials
+    return {
+        mujoco.mj_id2name(world.model, mujoco.mjtObj.mjOBJ_GEOM, g): mats.table.materials[m].name
+        for g, m in enumerate(mats.geom_material)
+    }
+
+
+def test_scene_materials_resolve_by_sidecar_mjcf_name_and_what_the_geom_is(tmp_path):
+    xml = tmp_path / "mats.xml"
+    xml.write_text(SCENE)
+    (tmp_path / "mats.materials.yaml").write_text(
+        "default: concrete\n"
+        "materials:\n  shopfront: {reflectivity: 0.0, mirror: 0.05, transmission: 0.8}\n"
+        "mjcf_materials:\n  facade: brick\n"
+        "geoms:\n  'shop_window_*': shopfront\n"
+    )
+    got = _geom_materials(World(xml))
+    assert got == {
+        "ground": "asphalt",  # the longest table name in the MJCF material's name
+        "house": "brick",  # a generated town's name
+        "shop": "brick",  # the sidecar's mjcf_materials
+        "shop_window_1": "shopfront",  # the sidecar's geom glob, with its own material
+        "thing": "concrete",  # the sidecar's default
+        "parked_v0_3_body": "car_paint_0.65",  # a white parked car (luminance 0.89)
+        "parked_v0_3_cabin": "glass",
+    }
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("default: marble\n", "no material 'marble'"),
+        ("colours: {}\n", "unknown key 'colours'"),
+        ("materials:\n  x: {reflectivity: 2}\n", "reflectivity must be a number in"),
+        ("geoms:\n  'a*': nothing\n", "geoms: a\\*: no material 'nothing'"),
+        ("geoms: [1, 2\n", ""),
+    ],
+)
+def test_a_bad_material_sidecar_is_one_line_naming_it(tmp_path, text, message):
+    xml = tmp_path / "mats.xml"
+    xml.write_text(SCENE)
+    side = tmp_path / "mats.materials.yaml"
+    side.write_text(text)
+    with pytest.raises(InputError) as err:
+        World(xml).materials  # noqa: B018
+    assert str(side) in str(err.value) and "\n" not in str(err.value)
+    assert message == "" or __import__("re").search(message, str(err.value))
+
+
+def test_a_towns_terrain_roads_buildings_and_cars_have_their_materials():
+    world = World("town_small")
+    got = _geom_materials(world)
+    mats = world.materials
+    assert mats.ground is not None and mats.markings is not None
+    names = {n for n in got.values()}
+    assert {"asphalt", "concrete", "steel", "bark", "vegetation", "glass"} <= names
+    assert any(n.startswith("car_paint_") for n in names)
+    # the terrain under the spawn pose (a road) is asphalt, a point far from any road grass or sidewalk
+    t = world.town
+    xy = np.array([t.spawn[:2]])
+    assert mats.table.materials[int(mats.ground.at(xy)[0])].name == "asphalt"
+
+
+# ---------------------------------------------------------------------- the realistic sensor
+WALLS = """<mujoco model="walls">
+  <asset>
+    <material name="plaster" rgba="1 1 1 1"/>
+    <material name="asphalt" rgba="0.2 0.2 0.2 1"/>
+    <material name="glass" rgba="0.5 0.5 0.9 0.3"/>
+  </asset>
+  <worldbody>
+    <geom name="bright" type="box" pos="{d} 0 0" size="0.5 {w} 30" material="plaster"/>
+    <geom name="dark" type="box" pos="-{d} 0 0" size="0.5 {w} 30" material="asphalt"/>
+    <geom name="pane" type="box" pos="0 {g} 0" size="{w} 0.005 30" material="glass"/>
+    <geom name="behind" type="box" pos="0 {b} 0" size="{w} 0.5 30" material="plaster"/>
+  </worldbody>
+</mujoco>"""
+
+
+def _sweep(tmp_path, spec, d, seed=0, g=10.0, b=20.0):
+    xml = tmp_path / "walls.xml"
+    xml.write_text(WALLS.format(d=d, w=4 * d, g=g, b=b))
+    world = World(xml)
+    lidar = SimLidar(
+        spec,
+        world.caster,
+        np.random.default_rng(seed),
+        skew=False,
+        materials=world.materials,
+        returns=ReturnModel.for_spec(spec),
+    )
+    T = np.eye(4)
+    lidar.cast_columns(slice(None), 0.0, np.array([0.0, 1.0]), np.stack([T, T]))
+    return lidar, lidar.finish(0.0, np.array([0.0, 1.0]), np.stack([T, T]))
+
+
+def test_detection_follows_the_model_on_walls_of_known_material(tmp_path):
+    """Two walls face to face at +-d: the share of pixels that return matches the model's probability
+    within binomial error, and the intensity of the face-on plaster is 100 x its reflectivity x cos."""
+    spec = dataclasses.replace(load_spec("vlp-16"), range_noise_m=0.0, range_noise_weak_m=0.0)
+    model = ReturnModel.for_spec(spec)
+    d = 0.9 * model.range_limit_m(0.10) - 0.5  # the dark wall near its limit, the bright one well within
+    lidar, sweep = _sweep(tmp_path, spec, d)
+    geo = lidar.geometry
+    dirs = geo.directions.reshape(-1, 3)
+    rows, cols = np.unravel_index(np.arange(len(dirs)), geo.shape)
+    table = MaterialTable.load()
+    plaster, asphalt = (table.materials[table.id(n)].reflectivity for n in ("plaster", "asphalt"))
+    for sign, refl in ((+1, plaster), (-1, asphalt)):
+        toward = sign * dirs[:, 0] > 0.97  # pixels that face this wall (not the pane's plane)
+        cos = sign * dirs[toward, 0]
+        r = (d - 0.5) / cos
+        p = model.detection_probability(model.signal(refl * cos, r))
+        returned = sweep.ranges[rows[toward], cols[toward]] > 0
+        n = toward.sum()
+        assert abs(returned.sum() - p.sum()) < 4 * math.sqrt(max(1.0, (p * (1 - p)).sum())) + 1, (refl, n)
+    bright = (sweep.points[:, 0] > d - 1) & (np.abs(sweep.points[:, 1]) < 9)  # not the pane's side
+    expected = np.round(100 * plaster * (d - 0.5) / np.linalg.norm(sweep.points[bright], axis=1))
+    np.testing.assert_allclose(sweep.intensity[bright], expected, atol=1.0)
+
+
+def test_glass_passes_the_beam_to_what_lies_behind(tmp_path):
+    """A pane (a 1 cm glass box) at y = 10 before a plaster wall at y = 19.5: rays toward +y return from
+    the wall, dimmed by the pane's two surfaces there and back, except near face on, where the pane's glint
+    is the stronger return."""
+    spec = dataclasses.replace(load_spec("vlp-16"), range_noise_m=0.0, range_noise_weak_m=0.0)
+    _, sweep = _sweep(tmp_path, spec, d=500.0, g=10.0, b=20.0)  # the side walls out of range
+    p = sweep.points
+    toward = p[:, 1] > 5
+    y = p[toward, 1]
+    on_wall = np.abs(y - 19.5) < 0.05
+    on_pane = np.abs(y - 9.995) < 0.05
+    assert on_wall.sum() > 0.9 * toward.sum() and on_wall.sum() + on_pane.sum() == toward.sum()
+    # which return is the strongest, analytically: the pane's glint or the wall behind it (both face +y)
+    table = MaterialTable.load()
+    plaster = table.materials[table.id("plaster")].reflectivity
+    model = ReturnModel.for_spec(spec)
+    cos = p[toward, 1] / np.linalg.norm(p[toward], axis=1)  # incidence on both
+    glint = model.signal(model.effective_reflectivity(0.0, 0.04, 0.0, cos), 9.995 / cos)
+    pane = table.materials[table.id("glass")].transmission ** 4  # two surfaces, there and back
+    wall = model.signal(model.effective_reflectivity(plaster, 0.0, 0.0, cos), 19.5 / cos, pane)
+    clear = np.abs(np.log(np.maximum(glint, 1e-30) / wall)) > 0.1
+    assert on_pane.any() and clear.sum() > 0.95 * toward.sum()
+    np.testing.assert_array_equal(on_pane[clear], (glint > wall)[clear])
+    assert np.degrees(np.arccos(cos[on_pane])).max() < 6.0  # glints only near face on
+    # the wall behind the pane is reported dimmer by the pane's two-way transmission
+    expected = np.round(100 * plaster * pane * cos[on_wall])
+    np.testing.assert_allclose(sweep.intensity[toward][on_wall], expected, atol=1.0)
+
+
+def test_the_realistic_sweep_is_reproducible(tmp_path):
+    spec = load_spec("vlp-16")
+    _, a = _sweep(tmp_path, spec, 30.0, seed=4)
+    _, b = _sweep(tmp_path, spec, 30.0, seed=4)
+    _, c = _sweep(tmp_path, spec, 30.0, seed=5)
+    assert a.points.tobytes() == b.points.tobytes() and a.intensity.tobytes() == b.intensity.tobytes()
+    assert a.points.tobytes() != c.points.tobytes()
+
+
+def test_a_realistic_recording_writes_intensity_and_loses_weak_returns(tmp_path):
+    """Two frames of town_small with each model, the same seed: the realistic scan reports intensities
+    that follow the materials (lane markings and façades brighter than the asphalt), keeps fewer points,
+    and says which model made it."""
+    from rangemcl.datasets.kitti import load_sequence
+    from simbed.record import record
+
+    for model in ("ideal", "realistic"):
+        record(
+            "town_small",
+            "test",
+            "vlp-16",
+            tmp_path / model,
+            frames=2,
+            seed=1,
+            progress=False,
+            sensor_model=model,
+        )
+    ideal, real = load_sequence(tmp_path / "ideal"), load_sequence(tmp_path / "realistic")
+    assert real.meta["sensor_model"] == "realistic" and ideal.meta["sensor_model"] == "ideal"
+    pts_i, int_i = ideal.scan_with_intensity(1)
+    pts_r, int_r = real.scan_with_intensity(1)
+    assert not int_i.any()
+    assert 0.5 * len(pts_i) < len(pts_r) < len(pts_i)
+    assert int_r.min() >= 0 and int_r.max() <= 255 and np.unique(np.round(int_r)).size > 20
+    ground = pts_r[:, 2] < -1.5  # the road around the car (sensor 1.73 m up)
+    up = pts_r[:, 2] > 0.5  # façades, trees, cars' cabins
+    assert np.median(int_r[up]) > 2 * np.median(int_r[ground])
+
+
+def test_the_realistic_model_is_refused_for_a_sensor_without_its_figures(tmp_path):
+    from simbed.record import record
+
+    spec = load_spec("vlp-16").to_dict()
+    for key in ("range_at_10pct_m", "range_at_80pct_m", "range_noise_weak_m"):
+        spec.pop(key)
+    import yaml
+
+    (tmp_path / "mine.yaml").write_text(yaml.safe_dump(spec))
+    with pytest.raises(InputError, match="realistic sensor model needs"):
+        record(
+            "town_small",
+            "test",
+            str(tmp_path / "mine.yaml"),
+            tmp_path / "out",
+            frames=1,
+            progress=False,
+            sensor_model="realistic",
+        )
+    assert not (tmp_path / "out").exists()
+    with pytest.raises(InputError, match="sensor model 'fancy'"):
+        record(
+            "town_small", "test", "vlp-16", tmp_path / "out", frames=1, progress=False, sensor_model="fancy"
+        )
