@@ -54,7 +54,7 @@ _SCALAR_KEYS = (
 )
 
 
-_RETURN_KEYS = ("range_at_10pct_m", "range_at_80pct_m", "range_noise_weak_m")
+_RETURN_KEYS = ("range_at_10pct_m", "range_at_80pct_m", "range_noise_weak_m", "beam_divergence_mrad")
 INTENSITY_SCALES = ("reflectivity_8bit", "unit")
 
 
@@ -81,6 +81,9 @@ class LidarSpec:
         range_at_10pct_m, range_at_80pct_m: the datasheet's detection range for a 10 % and an 80 %
             reflectivity target (the realistic return model's detection threshold and extinction).
         range_noise_weak_m: 1-sigma range noise of returns at the detection threshold (realistic model).
+        beam_divergence_mrad: the beam's full divergence (the realistic model's footprint: mixed
+            pixels at depth edges); None: a ray without a footprint.
+        dual_return: the sensor can report its last echo, or both the strongest and the last.
         intensity_scale: what the sensor reports as intensity: ``reflectivity_8bit`` (0-100 diffuse,
             101-255 retro-reflective: Velodyne's calibrated reflectivity, Ouster's reflectivity channel)
             or ``unit`` (0..1, as the KITTI HDL-64E scans store it).
@@ -106,6 +109,8 @@ class LidarSpec:
     range_at_10pct_m: float | None = None
     range_at_80pct_m: float | None = None
     range_noise_weak_m: float | None = None
+    beam_divergence_mrad: float | None = None
+    dual_return: bool = False
     intensity_scale: str = "reflectivity_8bit"
     T_base_sensor: np.ndarray = field(default_factory=_default_mount, repr=False)
     source: str = field(default="", repr=False)
@@ -173,6 +178,8 @@ class LidarSpec:
             self._fail("range_at_10pct_m and range_at_80pct_m go together (give both or neither)")
         if r10 is not None and r10 >= r80:
             self._fail(f"range_at_10pct_m ({r10}) must be below range_at_80pct_m ({r80})")
+        if not isinstance(self.dual_return, bool):
+            self._fail(f"dual_return must be true or false, got {reprlib.repr(self.dual_return)}")
         if self.intensity_scale not in INTENSITY_SCALES:
             self._fail(
                 f"intensity_scale must be one of {', '.join(INTENSITY_SCALES)}, got {self.intensity_scale!r}"
@@ -296,6 +303,8 @@ _SCHEMA: dict[str, tuple[str, bool]] = {
     "range_at_10pct_m": ("float", False),
     "range_at_80pct_m": ("float", False),
     "range_noise_weak_m": ("float", False),
+    "beam_divergence_mrad": ("float", False),
+    "dual_return": ("bool", False),
     "intensity_scale": ("str", False),
     "mount": ("mount", False),
 }
@@ -346,7 +355,13 @@ def _mount(value: Any, key: str, where: str) -> np.ndarray:
     return transform_from_xyz_rpy(xyz_m, rpy_deg)
 
 
-_PARSERS = {"str": _text, "float": _number, "int": _integer, "list": _numbers, "mount": _mount}
+def _flag(value: Any, key: str, where: str) -> bool:
+    if not isinstance(value, bool):
+        raise InputError(f"{where}: {key} must be true or false, got {reprlib.repr(value)}")
+    return value
+
+
+_PARSERS = {"bool": _flag, "str": _text, "float": _number, "int": _integer, "list": _numbers, "mount": _mount}
 
 
 def spec_from_dict(data: Mapping[str, Any], where: str = "<dict>") -> LidarSpec:

@@ -88,6 +88,14 @@ def record(
         help="ideal (every surface returns every ray; intensity 0) or realistic (materials decide "
         "returns, range noise and intensity).",
     ),
+    weather: str = typer.Option(
+        "clear",
+        help="realistic sensor: clear, fog:VISIBILITY_M (e.g. fog:100) or rain:MM_PER_H (e.g. rain:10).",
+    ),
+    returns: str = typer.Option(
+        "strongest",
+        help="realistic sensor: strongest, last or dual echoes (last, dual: sensors that have them).",
+    ),
 ) -> None:
     """Drive a route and record LiDAR, ground-truth poses, odometry and IMU in the KITTI layout or as a
     ROS bag / MCAP (PointCloud2 with per-point time and ring, IMU, odometry, TF, truth, actors).
@@ -118,6 +126,8 @@ def record(
             viz=viz,
             viz_out=viz_out,
             sensor_model=sensor_model,
+            weather=weather,
+            return_mode=returns,
         )
     except KeyboardInterrupt:
         from rangemcl.datasets.sources import open_source

@@ -19,8 +19,9 @@ from simbed.scenes.lanes import MAX_SPEED_MPS, check_lane, lane_from_waypoints, 
 from simbed.scenes.routes import Route, is_waypoint_file, load_waypoints, make_route
 from simbed.sim.actors import ACTOR_KINDS, actors_along_route, check_actor_paths, read_actor_paths
 from simbed.sim.drive import Drive
-from simbed.sim.lidar import SENSOR_MODELS
+from simbed.sim.lidar import SENSOR_MODELS, check_return_mode
 from simbed.sim.returns import ReturnModel
+from simbed.sim.weather import Weather
 from simbed.sim.world import World, resolve_scene
 
 
@@ -66,6 +67,8 @@ def record(
     viz: bool = False,
     viz_out: str | os.PathLike | None = None,
     sensor_model: str = "ideal",
+    weather: str = "clear",
+    return_mode: str = "strongest",
 ) -> RecordSummary:
     """Drive ``route`` in ``scene`` and write ``frames`` LiDAR frames to ``out``.
 
@@ -84,7 +87,8 @@ def record(
     the true pose and the actors' boxes), which is complete only once closed. ``viz`` streams the scene,
     the car, its sweeps and the actors to the rerun viewer, ``viz_out`` saves them as an ``.rrd``.
     ``sensor_model`` is ``ideal`` or ``realistic`` (:mod:`simbed.sim.lidar`); the realistic one writes
-    each point's intensity.
+    each point's intensity, meets ``weather`` (``clear``, ``fog:V``, ``rain:R``) and reports its
+    ``return_mode``'s echoes (``strongest``, ``last``, ``dual``: each point's ``echo`` in its metadata).
     """
     out = Path(out)
     if frames < 1:
@@ -98,8 +102,12 @@ def record(
     spec = load_spec(sensor)
     if sensor_model not in SENSOR_MODELS:
         raise InputError(f"sensor model {sensor_model!r}: expected {', '.join(SENSOR_MODELS)}")
+    sky = Weather.parse(weather)
     if sensor_model == "realistic":
         ReturnModel.for_spec(spec)  # the spec has what the model needs, before anything is written
+        check_return_mode(spec, return_mode)
+    elif sky.kind != "clear" or return_mode != "strongest":
+        raise InputError("--weather and --returns need the realistic sensor model (--sensor-model realistic)")
     if fmt not in ("kitti", *BAG_FORMATS):
         raise InputError(f"format {fmt!r}: expected kitti, {', '.join(BAG_FORMATS)}")
     if fmt != "kitti":
@@ -146,7 +154,16 @@ def record(
         dropped = check_actor_paths(world.actors, ground, world.caster, world.static_handle, source)
         for line in dropped:
             print(f"simbed: warning: {line}", file=sys.stderr)
-    drive = Drive(world, path, spec, rng, skew=skew, sensor_model=sensor_model)
+    drive = Drive(
+        world,
+        path,
+        spec,
+        rng,
+        skew=skew,
+        sensor_model=sensor_model,
+        weather=str(sky),
+        return_mode=return_mode,
+    )
     viewer = DriveViewer.open(f"simbed record {Path(scene).stem} {route}", out_rrd=viz_out, spawn=viz)
     if viewer.enabled:
         viewer.log_map(*world.static_triangles)
@@ -167,6 +184,7 @@ def record(
         "physics_timestep_s": float(world.model.opt.timestep),
         "sensor": spec.to_dict(),
         "sensor_model": sensor_model,
+        **({"weather": str(sky), "return_mode": return_mode} if sensor_model == "realistic" else {}),
         "frames_requested": frames,
         "point_labels": {"0": "static world", "1": "moving actor"},
         "odometry": drive.odometry_errors(),
@@ -191,7 +209,13 @@ def record(
                 intensity=s.intensity,
                 odometry=frame.T_odom_sensor,
                 imu_roll_pitch=frame.imu_roll_pitch,
-                point_meta={"ring": s.ring, "column": s.column, "time_s": s.time_s, "label": s.label},
+                point_meta={
+                    "ring": s.ring,
+                    "column": s.column,
+                    "time_s": s.time_s,
+                    "label": s.label,
+                    **({"echo": s.echo} if sensor_model == "realistic" else {}),
+                },
                 **extra,
             )
             if last is not None:

@@ -16,6 +16,12 @@ one per LiDAR column), interleaved, and their ranges compared.
     python tools/bench_sim.py                  # 50 frames after 5 warm-up ones (about 20 s, 2 vCPUs)
     python tools/bench_sim.py --json out.json  # also write the figures
     python tools/bench_sim.py --quick          # 10 frames, a smoke run
+    python tools/bench_sim.py --realistic      # also the realistic sensor model on the same drive: its
+                                               # frames/s against the ideal one's, in this run
+
+With ``--realistic`` the same drive (a fresh world, the same seed) is timed again with
+``sensor_model="realistic"`` (materials, footprints at depth edges, glass; ``--weather`` for weather), right
+after the ideal one, and the ratio of their median frame times is reported.
 """
 
 from __future__ import annotations
@@ -475,6 +481,8 @@ def main() -> None:
     ap.add_argument("--write-dir", help="folder for the write test's temporary sequence (default: temp)")
     ap.add_argument("--quick", action="store_true", help="10 frames, 2 warm-up, 2 captured, 2 repeats")
     ap.add_argument("--json", help="write the figures to this file")
+    ap.add_argument("--realistic", action="store_true", help="also time the realistic sensor model")
+    ap.add_argument("--weather", default="clear", help="the realistic model's weather (default clear)")
     args = ap.parse_args()
     if args.quick:
         args.frames, args.warmup, args.capture, args.repeats, args.write_frames = 10, 2, 2, 2, 5
@@ -555,6 +563,26 @@ def main() -> None:
         f"  (the timing wrappers' own cost, {wrapped_calls:.0f} calls x {per_call * 1e6:.2f} us = "
         f"{ms(overhead)} per frame, is in these figures)"
     )
+
+    realistic = None
+    if args.realistic:  # the same drive again, with the realistic sensor
+        rng_r = np.random.default_rng(args.seed)
+        world_r = World(args.scene, n_actors=args.actors, rng=rng_r, threads=args.threads or None)
+        drive_r = Drive(world_r, route, spec, rng_r, sensor_model="realistic", weather=args.weather)
+        res_r = time_frames(drive_r, args.warmup, args.frames)
+        med_r = float(np.median(res_r["frame_s"]))
+        realistic = {
+            "weather": args.weather,
+            "frame_s_median": med_r,
+            "frames_per_s_median": 1.0 / med_r,
+            "points_per_frame": res_r["points"],
+            "realistic_over_ideal_frame_time": med_r / med,
+        }
+        print(
+            f"\nrealistic sensor ({args.weather}): median frame {ms(med_r)} = {1.0 / med_r:.2f} frames/s, "
+            f"{res_r['points']:,.0f} points per frame; {med_r / med:.2f}x the ideal sensor's frame time "
+            f"(same drive, this run)"
+        )
 
     # ---- capture rays
     calls, frames = capture_frames(drive, args.capture)
@@ -742,6 +770,7 @@ def main() -> None:
             "lidar_mrays_per_s_in_drive": cast_rate,
             "timing_wrapper_overhead_s_per_frame": overhead,
             "write": wc,
+            "realistic": realistic,
             "replay": {
                 "frames": args.capture,
                 "rays": rp.n_rays,

@@ -16,6 +16,7 @@ from simbed.scenes.routes import Route
 from simbed.sim.lidar import SENSOR_MODELS, SimLidar, Sweep
 from simbed.sim.returns import ReturnModel
 from simbed.sim.vehicle import OdometryNoise, RouteFollower, WheelGyroOdometry, wheel_torque
+from simbed.sim.weather import Weather
 from simbed.sim.world import World
 
 
@@ -44,6 +45,8 @@ class Drive:
         chunks_per_sweep: how often, within a sweep, the world is re-posed for casting.
         settle_s: physics time to let the car settle on its wheels before the first sweep.
         sensor_model: ``ideal`` or ``realistic`` (:mod:`simbed.sim.lidar`).
+        weather: the realistic sensor's weather (``clear``, ``fog:V``, ``rain:R``: :mod:`simbed.sim.weather`).
+        return_mode: the realistic sensor's ``strongest``, ``last`` or ``dual`` echoes.
     """
 
     def __init__(
@@ -59,6 +62,8 @@ class Drive:
         settle_s: float = 1.0,
         odometry_noise: OdometryNoise | None = None,
         sensor_model: str = "ideal",
+        weather: str = "clear",
+        return_mode: str = "strongest",
     ):
         if world.car is None:
             raise InputError(f"{world.path}: the scene has no car to drive")
@@ -72,6 +77,11 @@ class Drive:
                 f"unknown sensor model {sensor_model!r} (choose from {', '.join(SENSOR_MODELS)})"
             )
         realistic = sensor_model == "realistic"
+        sky = Weather.parse(weather)
+        if not realistic and (sky.kind != "clear" or return_mode != "strongest"):
+            raise InputError(
+                "weather and return modes need the realistic sensor model (--sensor-model realistic)"
+            )
         self.sensor_model = sensor_model
         self.lidar = SimLidar(
             spec,
@@ -80,7 +90,9 @@ class Drive:
             skew=skew,
             actor_mesh_ids=world.actor_handles,
             materials=world.materials if realistic else None,
-            returns=ReturnModel.for_spec(spec) if realistic else None,
+            returns=ReturnModel.for_spec(spec, sky) if realistic else None,
+            weather=sky,
+            return_mode=return_mode,
         )
         self.chunks = max(1, int(chunks_per_sweep))
         self.dt = float(world.model.opt.timestep)

@@ -260,13 +260,14 @@ class RoadMarkings:
     DASH_M = 3.0
     GAP_M = 6.0
     SAMPLE_M = 0.25  # spacing of the centre-line samples the lookup searches
+    RASTER_M = 1.0  # cells of the raster that says where a line may be
 
     nodes: np.ndarray
     edges: np.ndarray
     road_width_m: float
 
     def __post_init__(self) -> None:
-        pts, dirs, along = [], [], []
+        pts, dirs, along, lengths = [], [], [], []
         for a, b in self.edges:
             pa, pb = self.nodes[a], self.nodes[b]
             length = float(np.linalg.norm(pb - pa))
@@ -278,16 +279,51 @@ class RoadMarkings:
             pts.append(pa + s[:, None] * u)
             dirs.append(np.repeat(u[None], n, 0))
             along.append(s)
+            lengths.append(np.full(n, length))
         object.__setattr__(self, "_pts", np.concatenate(pts))
         object.__setattr__(self, "_dirs", np.concatenate(dirs))
         object.__setattr__(self, "_along", np.concatenate(along))
+        object.__setattr__(self, "_length", np.concatenate(lengths))
         object.__setattr__(self, "_tree", cKDTree(self._pts))
         degree = np.bincount(self.edges.ravel(), minlength=len(self.nodes))
         junctions = self.nodes[degree != 2]
         object.__setattr__(self, "_junctions", cKDTree(junctions) if len(junctions) else None)
+        # a coarse raster of the cells near any line: only points there are looked up in the tree
+        cell = self.RASTER_M
+        lo = self._pts.min(axis=0) - self.road_width_m
+        hi = self._pts.max(axis=0) + self.road_width_m
+        shape = np.ceil((hi - lo) / cell).astype(int) + 1
+        gx, gy = np.meshgrid(
+            lo[0] + (np.arange(shape[0]) + 0.5) * cell,
+            lo[1] + (np.arange(shape[1]) + 0.5) * cell,
+            indexing="ij",
+        )
+        centres = np.column_stack([gx.ravel(), gy.ravel()])
+        d, k = self._tree.query(centres)
+        lateral = np.abs(
+            (centres - self._pts[k])[:, 0] * self._dirs[k][:, 1]
+            - (centres - self._pts[k])[:, 1] * self._dirs[k][:, 0]
+        )
+        slack = cell * 0.75 + self.LINE_WIDTH_M  # a cell's half diagonal and the line's width
+        edge = self.road_width_m / 2 - self.EDGE_INSET_M
+        near = (lateral <= slack) | (np.abs(lateral - edge) <= slack)
+        near &= d <= self.road_width_m / 2 + slack
+        object.__setattr__(self, "_raster", near.reshape(shape))
+        object.__setattr__(self, "_raster_lo", lo)
 
     def painted(self, xy: np.ndarray) -> np.ndarray:
         """(N,) bool: the points ``xy`` (N, 2) lie on a marking."""
+        out = np.zeros(len(xy), bool)
+        if len(xy) == 0:
+            return out
+        ij = np.floor((xy - self._raster_lo) / self.RASTER_M).astype(np.int64)
+        inside = np.all((ij >= 0) & (ij < np.array(self._raster.shape)), axis=1)
+        cand = np.flatnonzero(inside)
+        cand = cand[self._raster[ij[cand, 0], ij[cand, 1]]]
+        out[cand] = self._painted(xy[cand])
+        return out
+
+    def _painted(self, xy: np.ndarray) -> np.ndarray:
         if len(xy) == 0:
             return np.zeros(0, bool)
         _, k = self._tree.query(xy)
@@ -298,7 +334,7 @@ class RoadMarkings:
         half = self.LINE_WIDTH_M / 2
         centre = (lateral <= half) & (np.mod(s, self.DASH_M + self.GAP_M) < self.DASH_M)
         edge = np.abs(lateral - (self.road_width_m / 2 - self.EDGE_INSET_M)) <= half
-        on = centre | edge
+        on = (centre | edge) & (s >= 0) & (s <= self._length[k])  # on the road, not beyond its ends
         if self._junctions is not None:
             dj, _ = self._junctions.query(xy)
             on &= dj > self.road_width_m
@@ -452,14 +488,23 @@ class SceneMaterials:
         """Tell the lookup which geom each face of caster mesh ``handle`` came from (``face_map``: the
         caster's kept faces, :attr:`rangemcl.raycast.MeshInfo.face_map`)."""
         self._face_geoms[int(handle)] = np.asarray(geom_ids_per_face, np.int32)[np.asarray(face_map)]
+        # every mesh's faces in one array, each mesh at its offset (one gather per lookup)
+        handles = sorted(self._face_geoms)
+        self._offset = np.full(handles[-1] + 2, -1, np.int64)
+        sizes = np.array([len(self._face_geoms[h]) for h in handles], np.int64)
+        self._offset[handles] = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+        self._flat = np.concatenate([self._face_geoms[h] for h in handles] + [np.full(1, -1, np.int32)])
 
     def geoms_of(self, mesh_ids: np.ndarray, face_ids: np.ndarray) -> np.ndarray:
         """(N,) geom id of each hit (-1 for a miss or a mesh the lookup does not know)."""
         out = np.full(len(mesh_ids), -1, np.int32)
-        for handle, faces in self._face_geoms.items():
-            sel = mesh_ids == handle
-            if sel.any():
-                out[sel] = faces[face_ids[sel]]
+        if not self._face_geoms:
+            return out
+        m = np.asarray(mesh_ids, np.int64)
+        inside = (m >= 0) & (m < len(self._offset))
+        off = np.where(inside, self._offset[np.where(inside, m, -1)], -1)
+        known = off >= 0
+        out[known] = self._flat[off[known] + face_ids[known]]
         return out
 
     def lookup(self, mesh_ids: np.ndarray, face_ids: np.ndarray, points: np.ndarray, normals: np.ndarray):

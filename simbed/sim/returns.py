@@ -69,7 +69,9 @@ class ReturnModel:
     extra_alpha_per_m: float = 0.0  # the weather's extinction, added to the sensor's
 
     @classmethod
-    def for_spec(cls, spec) -> ReturnModel:
+    def for_spec(cls, spec, weather=None) -> ReturnModel:
+        """The model of ``spec`` (its datasheet figures) in ``weather``
+        (:class:`simbed.sim.weather.Weather`, clear by default)."""
         missing = [
             k
             for k in ("range_at_10pct_m", "range_at_80pct_m", "range_noise_weak_m")
@@ -88,7 +90,13 @@ class ReturnModel:
             spec.range_noise_m,
             max(spec.range_noise_weak_m, spec.range_noise_m),
             spec.intensity_scale,
+            0.0 if weather is None else weather.extinction_per_m,
         )
+
+    def weather_dimming(self, range_m) -> np.ndarray:
+        """What the weather takes from a return at ``range_m``, both ways: a calibrated sensor corrects
+        for range in clear air only, so it reports the reflectivity dimmed by this."""
+        return np.exp(-2.0 * self.extra_alpha_per_m * np.asarray(range_m, np.float64))
 
     # --- the physics -------------------------------------------------------------------------------------
     @staticmethod
