@@ -96,6 +96,7 @@ def record(
         "strongest",
         help="realistic sensor: strongest, last or dual echoes (last, dual: sensors that have them).",
     ),
+    dropout: float = typer.Option(0.0, help="Share of the returns dropped at random on top (a stress test)."),
 ) -> None:
     """Drive a route and record LiDAR, ground-truth poses, odometry and IMU in the KITTI layout or as a
     ROS bag / MCAP (PointCloud2 with per-point time and ring, IMU, odometry, TF, truth, actors).
@@ -128,6 +129,7 @@ def record(
             sensor_model=sensor_model,
             weather=weather,
             return_mode=returns,
+            dropout=dropout,
         )
     except KeyboardInterrupt:
         from rangemcl.datasets.sources import open_source
@@ -264,7 +266,9 @@ def _int_list(text: str, option: str) -> tuple[int, ...]:
 
 @app.command()
 def trials(
-    suite: str = typer.Argument(..., help="particles, sensors, models, kidnap, runtime or generalization."),
+    suite: str = typer.Argument(
+        ..., help="particles, sensors, models, kidnap, runtime, robustness or generalization."
+    ),
     out: Path = typer.Option(
         ...,
         help="Suite folder (drives, trials, results.csv, SUITE.md, SUITE.png; generalization: towns.yaml, "
@@ -302,6 +306,10 @@ def trials(
         None,
         help="Suites 'sensors' and 'generalization': sensor presets, comma-separated (default: the paper's "
         "five).",
+    ),
+    levels: str = typer.Option(
+        None,
+        help="Robustness: sensor realism levels, comma-separated (default ideal,realistic,rain,fog,dropout).",
     ),
     towns: int = typer.Option(None, help="Generalization: towns to draw (default 5)."),
     town_seeds: str = typer.Option(
@@ -370,6 +378,7 @@ def trials(
         "particle_counts": None if counts is None else _int_list(counts, "--counts"),
         "models": None if models is None else tuple(m.strip() for m in models.split(",") if m.strip()),
         "sensors": None if sensors is None else tuple(m.strip() for m in sensors.split(",") if m.strip()),
+        "levels": None if levels is None else tuple(m.strip() for m in levels.split(",") if m.strip()),
     }
     given = {k: v for k, v in given.items() if v is not None}
     draw = {

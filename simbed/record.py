@@ -3,6 +3,7 @@ odometry."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import sys
@@ -69,6 +70,7 @@ def record(
     sensor_model: str = "ideal",
     weather: str = "clear",
     return_mode: str = "strongest",
+    dropout: float = 0.0,
 ) -> RecordSummary:
     """Drive ``route`` in ``scene`` and write ``frames`` LiDAR frames to ``out``.
 
@@ -89,6 +91,8 @@ def record(
     ``sensor_model`` is ``ideal`` or ``realistic`` (:mod:`simbed.sim.lidar`); the realistic one writes
     each point's intensity, meets ``weather`` (``clear``, ``fog:V``, ``rain:R``) and reports its
     ``return_mode``'s echoes (``strongest``, ``last``, ``dual``: each point's ``echo`` in its metadata).
+    ``dropout`` drops that share of the returns at random on top (a stress test; the spec's
+    ``dropout_prob`` when larger).
     """
     out = Path(out)
     if frames < 1:
@@ -100,6 +104,10 @@ def record(
     if seed < 0:
         raise InputError(f"seed must be >= 0, got {seed}")
     spec = load_spec(sensor)
+    if not 0.0 <= dropout < 1.0:
+        raise InputError(f"dropout must be in [0, 1), got {dropout}")
+    if dropout > spec.dropout_prob:
+        spec = dataclasses.replace(spec, dropout_prob=float(dropout))
     if sensor_model not in SENSOR_MODELS:
         raise InputError(f"sensor model {sensor_model!r}: expected {', '.join(SENSOR_MODELS)}")
     sky = Weather.parse(weather)

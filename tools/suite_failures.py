@@ -78,7 +78,7 @@ def main() -> None:
         ]
         alarms: list[float] = []
         for r in rs:
-            key = drive_key(*(r[k] for k in DRIVE_FIELDS))
+            key = drive_key(**{k: r[k] for k in DRIVE_FIELDS if r.get(k) not in (None, "")})
             if key not in truths:
                 try:
                     truths[key] = read_poses_txt(a.suite_dir / "drives" / key / "poses.txt")

@@ -8,7 +8,9 @@ localization, or a kidnapped car (tracking, then teleported halfway). Suites:
 * ``sensors``: location and yaw RMSE for the 8- to 128-beam presets with one parameter set (Table III);
 * ``models``: location and yaw error per observation model on two test drives (Table II);
 * ``kidnap``: relocalization rate and time after a teleport;
-* ``runtime``: frame rates before and after convergence.
+* ``runtime``: frame rates before and after convergence;
+* ``robustness``: the ``sensors`` suite's presets at each sensor realism level (:data:`REALISM_LEVELS`:
+  the ideal sensor, the realistic one, in rain, in fog, and with heavy dropout), the same starts for all.
 
 ``quick`` sizes run in CI time; the full sizes are for a long run or a GPU. Drives are recorded once into
 ``OUT/drives`` and shared by the trials; every trial writes its ``rangemcl localize`` folder under
@@ -35,7 +37,18 @@ from rangemcl.common.pool import process_pool
 from rangemcl.errors import InputError
 from rangemcl.localization.models import MODEL_NAMES
 
-SUITES = ("particles", "sensors", "models", "kidnap", "runtime")
+SUITES = ("particles", "sensors", "models", "kidnap", "runtime", "robustness")
+# The robustness suite's sensor realism levels: how its test drives are recorded (simbed.record.record's
+# sensor_model, weather and dropout). Rain of 10 mm/h is heavy rain; fog of 200 m visibility is moderate
+# fog (it halves a 10 % target's range: tools/weather_ranges.py); half the returns dropped at random is
+# a stress level no sensor reaches in clear air.
+REALISM_LEVELS: dict[str, dict] = {
+    "ideal": {"sensor_model": "ideal"},
+    "realistic": {"sensor_model": "realistic"},
+    "rain": {"sensor_model": "realistic", "weather": "rain:10"},
+    "fog": {"sensor_model": "realistic", "weather": "fog:200"},
+    "dropout": {"sensor_model": "realistic", "dropout": 0.5},
+}
 # The paper's figures per sensor in Carla (location RMSE m, yaw RMSE deg), beside ours in
 # docs/results/town_large/README.md
 PAPER_SENSORS = {
@@ -65,6 +78,7 @@ class Trial:
     kidnap: bool = False
     settings: str = ""  # localizer settings the suite was given (canonical JSON; "" = the defaults)
     method: str = "default"  # a name for those settings in the tables (the config file's stem); not keyed
+    realism: str = "ideal"  # how the test drive's sensor was simulated (REALISM_LEVELS)
 
     @property
     def key(self) -> str:
@@ -85,15 +99,17 @@ class Trial:
 # version changed: CHANGELOG.md.
 METHOD_VERSION = method_version()
 
-DRIVE_FIELDS = ("scene", "sensor", "route", "variant", "actors", "drive_seed", "drive_frames")
+DRIVE_FIELDS = ("scene", "sensor", "route", "variant", "actors", "drive_seed", "drive_frames", "realism")
 
 
-def drive_key(scene, sensor, route, variant, actors, drive_seed, drive_frames) -> str:
+def drive_key(scene, sensor, route, variant, actors, drive_seed, drive_frames, realism="ideal") -> str:
     """A test drive's folder name under ``OUT/drives`` (from a Trial, or a results.csv row's fields). A
     scene, route or sensor given as a file path is named by its file's stem and a hash of its absolute
-    path, so that the folder stays under ``OUT`` (``/home/me/s.xml`` would otherwise make it absolute)."""
+    path, so that the folder stays under ``OUT`` (``/home/me/s.xml`` would otherwise make it absolute).
+    A realism level other than the ideal sensor ends it (``-lrain``)."""
     scene, sensor, route = (_name_part(str(v)) for v in (scene, sensor, route))
-    return f"{scene}-{sensor}-{route}-v{variant}-a{actors}-d{drive_seed}-n{drive_frames}"
+    level = "" if realism in ("ideal", "", None) else f"-l{realism}"
+    return f"{scene}-{sensor}-{route}-v{variant}-a{actors}-d{drive_seed}-n{drive_frames}{level}"
 
 
 def _name_part(value: str) -> str:
@@ -117,7 +133,8 @@ class SuiteConfig:
     particles: int = 10000  # global localization (suite 'particles' varies it); quick suites use 2,000
     particle_counts: tuple[int, ...] | None = None  # suite 'particles' (default 1k, 5k, 10k, 50k, 100k)
     models: tuple[str, ...] | None = None  # suites 'particles' and 'models' (default: all four)
-    sensors: tuple[str, ...] | None = None  # suite 'sensors' (default: the paper's five presets)
+    sensors: tuple[str, ...] | None = None  # suites 'sensors', 'robustness' (default: the paper's five)
+    levels: tuple[str, ...] | None = None  # suite 'robustness' (default: all of REALISM_LEVELS)
     settings: str = ""  # localizer settings for every trial (canonical JSON, see suite_settings)
     method: str = "default"  # their name in the tables
 
@@ -150,6 +167,9 @@ def suite_trials(suite: str, quick: bool = False, config: SuiteConfig | None = N
     bad = [m for m in c.models or () if m not in MODEL_NAMES]
     if bad:
         raise InputError(f"observation model {bad[0]!r}: expected one of {', '.join(MODEL_NAMES)}")
+    bad = [lv for lv in c.levels or () if lv not in REALISM_LEVELS]
+    if bad:
+        raise InputError(f"realism level {bad[0]!r}: expected one of {', '.join(REALISM_LEVELS)}")
     if any(not isinstance(n, int) or n < 1 for n in c.particle_counts or ()):
         raise InputError(f"particle counts must be positive integers, got {c.particle_counts}")
     starts = 2 if quick else c.starts
@@ -163,6 +183,7 @@ def suite_trials(suite: str, quick: bool = False, config: SuiteConfig | None = N
         n=starts,
         kidnap=False,
         seed0=0,
+        realism="ideal",
     ):
         span = max(0, c.drive_frames - c.frames)
         out = []
@@ -186,6 +207,7 @@ def suite_trials(suite: str, quick: bool = False, config: SuiteConfig | None = N
                     kidnap,
                     c.settings,
                     c.method,
+                    realism,
                 )
             )
         return out
@@ -204,6 +226,11 @@ def suite_trials(suite: str, quick: bool = False, config: SuiteConfig | None = N
         return [t for m in models for r in routes for t in trials(route=r, model=m, n=n)]
     if suite == "kidnap":
         return trials(kidnap=True, n=2 if quick else starts)
+    if suite == "robustness":
+        sensors = ["vlp-16"] if quick else list(c.sensors or PAPER_SENSORS)
+        levels = ["ideal", "realistic"] if quick else list(c.levels or REALISM_LEVELS)
+        n = 1 if quick else starts
+        return [t for s in sensors for lv in levels for t in trials(sensor=s, n=n, realism=lv)]
     return trials(n=1 if quick else 3)  # runtime
 
 
@@ -233,6 +260,7 @@ def ensure_drive(trial: Trial, drives_dir: Path, device: str = "cpu") -> Path:
         device=device,
         overwrite=True,
         progress=False,
+        **REALISM_LEVELS[trial.realism or "ideal"],
     )
     return path
 
@@ -715,6 +743,7 @@ def write_report(suite: str, rows: list[dict], out: Path) -> tuple[Path, Path]:
         "models": ["model", "route"],
         "kidnap": ["model"],
         "runtime": ["particles"],
+        "robustness": ["sensor", "realism"],
     }[suite]
     for r in rows:
         r.setdefault("method", "default")
@@ -740,7 +769,7 @@ def write_report(suite: str, rows: list[dict], out: Path) -> tuple[Path, Path]:
         "",
     ]
     cols = [*by, "trials", "successes", "location_rmse_m", "yaw_rmse_deg", "frames_to_converge_median"]
-    if suite in ("sensors", "particles"):
+    if suite in ("sensors", "particles", "robustness"):
         cols.insert(cols.index("yaw_rmse_deg"), "location_median_m")
         at = cols.index("successes") + 1
         cols[at:at] = [

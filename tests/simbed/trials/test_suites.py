@@ -285,3 +285,32 @@ def test_drive_keys_of_scene_and_route_files_stay_under_out(tmp_path):
     assert a == drive_key(str(tmp_path / "my_scene.xml"), "os1-64", str(tmp_path / "loop.txt"), 0, 0, 7, 100)
     other = drive_key(str(tmp_path / "elsewhere" / "my_scene.xml"), "os1-64", "test", 0, 0, 7, 100)
     assert other.split("-")[1] != a.split("-")[1]  # another file of the same name: another folder
+
+
+def test_robustness_suite_sets_each_realism_level_on_the_same_starts(tmp_path):
+    from rangemcl.datasets.kitti import load_sequence
+    from simbed.trials.suites import REALISM_LEVELS, ensure_drive
+
+    full = suite_trials("robustness", config=SuiteConfig(starts=3))
+    assert len(full) == 5 * len(REALISM_LEVELS) * 3
+    assert {t.realism for t in full} == set(REALISM_LEVELS)
+    by_level = {
+        lv: sorted((t.sensor, t.start_frame, t.seed) for t in full if t.realism == lv)
+        for lv in REALISM_LEVELS
+    }
+    assert all(v == by_level["ideal"] for v in by_level.values())  # the same trials at every level
+    # each level has its own drives; the ideal level's are the sensors suite's
+    assert len({t.drive_key for t in full}) == 5 * len(REALISM_LEVELS)
+    ideal = {t.drive_key for t in full if t.realism == "ideal"}
+    assert ideal == {t.drive_key for t in suite_trials("sensors", config=SuiteConfig(starts=3))}
+    with pytest.raises(InputError, match="realism level 'snow'"):
+        suite_trials("robustness", config=SuiteConfig(levels=("ideal", "snow")))
+    # a level's drive is recorded with its sensor model, weather and dropout
+    t = replace(full[0], sensor="vlp-16", realism="fog", drive_frames=2, scene="town_small")
+    path = ensure_drive(t, tmp_path)
+    meta = load_sequence(path).meta
+    assert path.name.endswith("-lfog")
+    assert meta["sensor_model"] == "realistic" and meta["weather"] == "fog:200"
+    t = replace(t, realism="dropout")
+    meta = load_sequence(ensure_drive(t, tmp_path)).meta
+    assert meta["sensor"]["dropout_prob"] == 0.5
