@@ -283,6 +283,34 @@ def test_detection_follows_the_model_on_walls_of_known_material(tmp_path):
     np.testing.assert_allclose(sweep.intensity[bright], expected, atol=1.0)
 
 
+def test_grazing_rays_on_a_dark_surface_drop_more_often_than_face_on_white_at_the_models_rates(tmp_path):
+    """The same two walls, now at 12 m: the dark wall's grazing pixels (60-75 degrees off its normal) and
+    the white wall's face-on pixels (within 15 degrees), each group's dropped share within binomial error
+    of the model's mean probability, and the dark grazing group's far larger."""
+    spec = dataclasses.replace(load_spec("vlp-16"), range_noise_m=0.0, range_noise_weak_m=0.0)
+    model = ReturnModel.for_spec(spec)
+    d = 12.5
+    lidar, sweep = _sweep(tmp_path, spec, d, g=400.0, b=500.0)  # the pane and the wall behind it far away
+    geo = lidar.geometry
+    dirs = geo.directions.reshape(-1, 3)
+    rows, cols = np.unravel_index(np.arange(len(dirs)), geo.shape)
+    table = MaterialTable.load()
+    plaster, asphalt = (table.materials[table.id(n)].reflectivity for n in ("plaster", "asphalt"))
+    dropped = {}
+    for name, sign, refl, lo, hi in (
+        ("white face-on", +1, plaster, 15, 0),
+        ("dark grazing", -1, asphalt, 75, 60),
+    ):
+        cos = sign * dirs[:, 0]
+        group = (cos > np.cos(np.radians(lo))) & (cos <= np.cos(np.radians(hi)))
+        c = cos[group]
+        p = model.detection_probability(model.signal(refl * c, (d - 0.5) / c))
+        lost = (sweep.ranges[rows[group], cols[group]] == 0).sum()
+        assert abs(lost - (1 - p).sum()) < 4 * math.sqrt(max(1.0, (p * (1 - p)).sum())) + 1, name
+        dropped[name] = lost / group.sum()
+    assert dropped["dark grazing"] > 0.2 and dropped["white face-on"] < 0.01
+
+
 def test_glass_passes_the_beam_to_what_lies_behind(tmp_path):
     """A pane (a 1 cm glass box) at y = 10 before a plaster wall at y = 19.5: rays toward +y return from
     the wall, dimmed by the pane's two surfaces there and back, except near face on, where the pane's glint
