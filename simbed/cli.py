@@ -166,6 +166,12 @@ def import_scene(
     ground_cell: float = typer.Option(0.5, help="Cell of the height field the car drives on (metres)."),
     max_piece_faces: int = typer.Option(200_000, help="Triangles per mesh piece at most."),
     overwrite: bool = typer.Option(False, help="Replace a scene imported before into OUT."),
+    material: str = typer.Option(
+        None, help="What the mesh is made of, for the realistic sensor (a name of simbed/sim/materials.yaml)."
+    ),
+    face_materials: Path = typer.Option(
+        None, help="A text file of one material name per face (the mesh's face order), overriding --material."
+    ),
 ) -> None:
     """Turn a static triangle mesh (a city model, a photogrammetry, a rangemcl map) into a drivable scene:
     the LiDAR sees the whole mesh, the car drives on a height field sampled from its ground."""
@@ -179,6 +185,8 @@ def import_scene(
         ground_cell_m=ground_cell,
         max_piece_faces=max_piece_faces,
         overwrite=overwrite,
+        material=material,
+        face_materials=face_materials,
     )
     rows, cols = r.ground_shape
     typer.echo(

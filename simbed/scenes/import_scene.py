@@ -9,6 +9,11 @@ ground instead (:class:`simbed.scenes.scene_ground.SceneGround`: the lowest surf
 each cell), a geom in the collision-only group :data:`COLLISION_ONLY_GROUP` that the LiDAR, ``export-mesh``
 and renders leave out. Files written next to ``OUT.xml``: ``OUT_meshes/piece_NNN.stl`` and
 ``OUT_ground.bin`` (the town terrain's format: int32 rows, int32 columns, float32 heights in [0, 1]).
+
+What the surfaces are made of, for the realistic sensor (:mod:`simbed.sim.materials`): ``material`` for
+the whole mesh, and ``face_materials`` (a text file, one material name per face, in the mesh's face order)
+to override it face by face. Each piece then holds faces of one material only, and ``OUT.materials.yaml``
+names each piece's material.
 """
 
 from __future__ import annotations
@@ -142,6 +147,33 @@ def ground_grid(
     return z, xs, ys, int(missing.sum())
 
 
+def _face_materials(n_faces: int, material: str | None, path) -> np.ndarray | None:
+    """Each face's material name (None when neither is given); every problem one InputError line."""
+    from simbed.sim.materials import MaterialTable
+
+    if material is None and path is None:
+        return None
+    table = MaterialTable.load()
+    if material is not None:
+        table.id(material, "--material")
+    names = np.full(n_faces, material or "unknown", dtype=object)
+    if path is not None:
+        path = Path(path)
+        if not path.is_file():
+            raise InputError(f"{path}: no such file (--face-materials: one material name per face)")
+        lines = [ln.strip() for ln in path.read_text(encoding="utf-8", errors="replace").splitlines()]
+        lines = [ln for ln in lines if ln and not ln.startswith("#")]
+        if len(lines) != n_faces:
+            raise InputError(
+                f"{path}: {len(lines)} material names for a mesh of {n_faces} faces (one per face)"
+            )
+        for i, name in enumerate(lines):
+            if name not in table.index:
+                table.id(name, f"{path}: face {i}")
+        names[:] = lines
+    return names
+
+
 def import_scene(
     world_file: str | Path,
     out: str | Path,
@@ -151,8 +183,11 @@ def import_scene(
     ground_cell_m: float = 0.5,
     max_piece_faces: int = 200_000,
     overwrite: bool = False,
+    material: str | None = None,
+    face_materials: str | Path | None = None,
 ) -> ImportReport:
-    """Write ``out`` (an MJCF file) and its mesh pieces and ground height field from ``world_file``."""
+    """Write ``out`` (an MJCF file) and its mesh pieces and ground height field from ``world_file``, and
+    with ``material`` or ``face_materials`` its materials sidecar ``OUT.materials.yaml``."""
     clock = time.perf_counter()
     out = Path(out)
     if out.suffix.lower() != ".xml":
@@ -163,13 +198,20 @@ def import_scene(
         raise InputError(f"--max-piece-faces {max_piece_faces}: expected at least 1000")
     pieces_dir = out.with_name(out.stem + "_meshes")
     ground_file = out.with_name(out.stem + "_ground.bin")
-    existing = [p for p in (out, pieces_dir, ground_file) if p.exists()]
+    sidecar = out.with_suffix(".materials.yaml")
+    existing = [p for p in (out, pieces_dir, ground_file, sidecar) if p.exists()]
     if existing and not overwrite:
         raise InputError(f"{existing[0]}: exists (give --overwrite to replace the imported scene)")
     check_output_files([out], overwrite=True, what="the scene")  # a folder, under a file, not writable
     v, f = load_world_mesh(world_file, scale=scale, up=up)
+    face_mat = _face_materials(len(f), material, face_materials)
     z, xs, ys, missing = ground_grid(v, f, ground_cell_m)
-    parts = split_pieces(v, f, max_piece_faces)
+    parts, part_mat = [], []
+    for name in sorted(set(face_mat)) if face_mat is not None else [None]:
+        mine = np.arange(len(f)) if name is None else np.flatnonzero(face_mat == name)
+        for idx in split_pieces(v, f[mine], max_piece_faces):
+            parts.append(mine[idx])
+            part_mat.append(name)
 
     with output_files([out], overwrite=True, what="the scene"):  # folders missing above it are made
         tmp_dir = out.with_name(f".{out.stem}_meshes.tmp")
@@ -233,6 +275,16 @@ def import_scene(
         ]
         lines += ["  </worldbody>", "</mujoco>", ""]
         atomic_write(out, "\n".join(lines))
+        if face_mat is not None:
+            rows = [
+                f"# materials of {out.name}'s mesh pieces (simbed import-scene); see simbed/sim/materials.py"
+            ]
+            rows.append(f"default: {material or 'unknown'}")
+            rows.append("geoms:")
+            rows += [f"  world_{k:03d}: {m}" for k, m in enumerate(part_mat)]
+            atomic_write(sidecar, "\n".join(rows) + "\n")
+        elif sidecar.exists():
+            sidecar.unlink()  # an earlier import's, replaced with --overwrite
         return ImportReport(
             out=out,
             triangles=len(f),

@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 from rangemcl.datasets.kitti import load_sequence
 from rangemcl.errors import InputError
 from simbed.record import record
-from simbed.scenes.import_scene import import_scene
+from simbed.scenes.import_scene import import_scene, load_world_mesh
 from simbed.sim.world import World
 
 
@@ -90,3 +90,47 @@ def test_bad_worlds_are_one_line(tmp_path):
     with pytest.raises(InputError, match="--overwrite"):
         import_scene(tmp_path / "world.ply", tmp_path / "s.xml")
     import_scene(tmp_path / "world.ply", tmp_path / "s.xml", overwrite=True)
+
+
+def test_imported_meshes_carry_their_materials_face_by_face(tmp_path):
+    """--material for the mesh, --face-materials face by face: every piece holds one material, the
+    sidecar names it, and a ray that hits a face gets that face's material (checked on every face's
+    centre, cast straight down or sideways onto it)."""
+    mesh = small_world()
+    mesh.export(tmp_path / "world.ply")
+    loaded_v, loaded_f = load_world_mesh(tmp_path / "world.ply")
+    centre = loaded_v[loaded_f].mean(axis=1)
+    names = np.where(centre[:, 2] > 3.0, "glass", np.where(centre[:, 2] < -0.01, "asphalt", "brick"))
+    names[np.hypot(centre[:, 0] + 5, centre[:, 1] + 8) < 0.5] = "steel"  # the pole
+    (tmp_path / "faces.txt").write_text("\n".join(names) + "\n")
+    import_scene(
+        tmp_path / "world.ply",
+        tmp_path / "scene.xml",
+        material="concrete",
+        face_materials=tmp_path / "faces.txt",
+        max_piece_faces=1000,
+    )
+    side = (tmp_path / "scene.materials.yaml").read_text()
+    assert "default: concrete" in side
+    world = World(tmp_path / "scene.xml")
+    mats = world.materials
+    # each face centre, hit from outside along the face's normal
+    v, f = world.static_triangles
+    tri = v[f]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    c = tri.mean(axis=1)
+    hits = world.caster.cast(c + 0.05 * n, -n, 0.1, normals=True)
+    ok = hits.hit & (n[:, 2] > -0.5)  # not the bottoms, which lie on the ground's top (either may be hit)
+    got = mats.lookup(hits.mesh_ids[ok], hits.face_ids[ok], c[ok], hits.normals[ok])
+    want = {tuple(np.round(cc, 3)): nm for cc, nm in zip(centre, names, strict=True)}
+    expect = [want.get(tuple(np.round(cc, 3))) for cc in c[ok]]
+    known = np.array([e is not None for e in expect])
+    assert known.mean() > 0.95 and ok.sum() > 0.75 * len(f)
+    got_names = np.array([mats.table.materials[g].name for g in got])
+    np.testing.assert_array_equal(got_names[known], np.array(expect, dtype=object)[known])
+    with pytest.raises(InputError, match=r"faces\.txt: 2 material names for a mesh of"):
+        (tmp_path / "faces.txt").write_text("glass\nbrick\n")
+        import_scene(tmp_path / "world.ply", tmp_path / "s2.xml", face_materials=tmp_path / "faces.txt")
+    with pytest.raises(InputError, match="--material: no material 'marble'"):
+        import_scene(tmp_path / "world.ply", tmp_path / "s3.xml", material="marble")
