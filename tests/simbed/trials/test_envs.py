@@ -121,3 +121,16 @@ def test_rangemcl_agent_tracks_the_car_in_a_trial():
     assert result["steps"] == 40 and result["converged"].all()
     assert np.sqrt(np.mean(result["position_error_m"] ** 2)) < 0.5
     assert np.sqrt(np.mean(result["yaw_error_deg"] ** 2)) < 1.0
+
+
+def test_the_realistic_sensor_observes_intensity_where_it_returns():
+    env = gym.make("simbed/LocalizationTrial-v0", **SMALL, sensor_model="realistic")
+    obs, _ = env.reset(seed=2)
+    assert env.observation_space.contains(obs)
+    ranges, intensity = obs["range_image"], obs["intensity_image"]
+    assert np.all(intensity[ranges == 0] == 0)
+    assert (intensity[ranges > 0] > 0).mean() > 0.9  # a few returns are too weak to read
+    ideal = gym.make("simbed/LocalizationTrial-v0", **SMALL)
+    obs_ideal, _ = ideal.reset(seed=2)
+    assert not obs_ideal["intensity_image"].any()
+    assert (ranges > 0).sum() < (obs_ideal["range_image"] > 0).sum()  # weak returns lost
