@@ -222,7 +222,7 @@ def record(
                     "column": s.column,
                     "time_s": s.time_s,
                     "label": s.label,
-                    **({"echo": s.echo} if sensor_model == "realistic" else {}),
+                    **({"echo": s.echo, "snr": s.snr} if sensor_model == "realistic" else {}),
                 },
                 **extra,
             )

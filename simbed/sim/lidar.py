@@ -57,6 +57,7 @@ class Sweep:
     label: np.ndarray  # (N,) uint8 LABEL_STATIC or LABEL_ACTOR
     intensity: np.ndarray  # (N,) float32 (the realistic model's; zeros for the ideal one)
     echo: np.ndarray  # (N,) uint8 0: the reported (strongest or last) echo; 1: a dual return's last echo
+    snr: np.ndarray  # (N,) float32 the return's signal-to-noise ratio (realistic; zeros for the ideal sensor)
     ranges: np.ndarray  # (H, W) float32 range image (rows by elevation), 0 = no return
     t_end: float
     T_world_sensor: np.ndarray  # (4, 4) at t_end
@@ -199,7 +200,8 @@ class SimLidar:
             keep = (true_r > 0) & (noisy >= spec.min_range_m) & (noisy <= spec.max_range_m)
             if spec.dropout_prob > 0:
                 keep &= self.rng.random(true_r.shape) >= spec.dropout_prob
-            reported = [(noisy, keep, np.zeros(true_r.shape, np.float32), self._labels)]
+            zero = np.zeros(true_r.shape, np.float32)
+            reported = [(noisy, keep, zero, self._labels, zero)]
         else:
             which = {"strongest": [0], "last": [1], "dual": [0, 1]}[self.return_mode]
             reported = []
@@ -211,16 +213,15 @@ class SimLidar:
                 keep = (r > 0) & detected & (noisy >= spec.min_range_m) & (noisy <= spec.max_range_m)
                 if spec.dropout_prob > 0:
                     keep &= self.rng.random(r.shape) >= spec.dropout_prob
-                if (
-                    k == 1 and len(which) == 2
-                ):  # dual: the last echo where it is another echo than the strongest
+                if k == 1 and len(which) == 2:  # dual: the last echo where it is not the strongest
                     keep &= np.abs(r - self._echoes[0][0]) > 1e-9
-                reported.append((noisy, keep, self.returns.intensity(rho), label))
+                snr = self.returns.snr(signal).astype(np.float32)
+                reported.append((noisy, keep, self.returns.intensity(rho), label, snr))
         t_end = t_start + self.period_s
         T_end = interpolate_poses(pose_times, poses, np.array([t_end]))[0]
         image = np.zeros(self.geometry.shape, np.float32)
         parts = []
-        for e, (noisy, keep, intensity, labels) in enumerate(reported):
+        for e, (noisy, keep, intensity, labels, snr) in enumerate(reported):
             cols, rows = np.nonzero(keep)  # column-major order: firing order
             r = noisy[cols, rows].astype(np.float64)
             if e == 0:
@@ -228,12 +229,24 @@ class SimLidar:
             points = (
                 self._orig[cols, rows] + r[:, None] * self._dirs[cols, rows]
             )  # (N, 3) each column's frame
-            parts.append((cols, rows, points, intensity[cols, rows], labels[cols, rows], np.full(len(r), e)))
-        cols, rows, points, intensity, labels, echo = (np.concatenate(x) for x in zip(*parts, strict=True))
+            parts.append(
+                (
+                    cols,
+                    rows,
+                    points,
+                    intensity[cols, rows],
+                    labels[cols, rows],
+                    np.full(len(r), e),
+                    snr[cols, rows],
+                )
+            )
+        cols, rows, points, intensity, labels, echo, snr = (
+            np.concatenate(x) for x in zip(*parts, strict=True)
+        )
         if len(parts) > 1:  # firing order: by column, the echoes of one pulse together
             order = np.lexsort((echo, rows, cols))
-            cols, rows, points, intensity, labels, echo = (
-                a[order] for a in (cols, rows, points, intensity, labels, echo)
+            cols, rows, points, intensity, labels, echo, snr = (
+                a[order] for a in (cols, rows, points, intensity, labels, echo, snr)
             )
         fire = t_start + self.column_time_s[cols]
         return Sweep(
@@ -244,6 +257,7 @@ class SimLidar:
             label=labels.astype(np.uint8),
             intensity=intensity.astype(np.float32),
             echo=echo.astype(np.uint8),
+            snr=snr.astype(np.float32),
             ranges=image,
             t_end=t_end,
             T_world_sensor=T_end,

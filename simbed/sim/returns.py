@@ -19,6 +19,9 @@ The physics, per ray (monostatic sensor, target larger than the beam):
 * **Range noise**: ``σ = σ_strong + (σ_weak - σ_strong)·min(1, sqrt(S_th / S))``: the datasheet's accuracy
   for strong returns, ``range_noise_weak_m`` at the threshold (shot-noise-limited timing degrades as the
   square root of the signal).
+* **SNR** ``12·S/S_th``: the signal-to-noise ratio, 12 at the threshold (the SNR at which Ouster's
+  datasheet states its weak-return accuracy); written beside the intensity (Ouster's signal channel
+  counts photons, which grow the same way).
 * **Intensity** by what the sensor family reports (``intensity_scale``): ``reflectivity_8bit`` (Velodyne's
   calibrated reflectivity and Ouster's reflectivity channel: ``100·ρ_eff`` for diffuse surfaces, 101-255
   for retro-reflectors on a log scale up to ``RETRO_FULL_SCALE``) or ``unit`` (0..1, as the KITTI HDL-64E
@@ -41,6 +44,7 @@ from rangemcl.sensors import INTENSITY_SCALES  # noqa: F401  (the scales this mo
 SPECULAR_LOBE_RAD = math.radians(2.0)  # half-width of a specular surface's glint (assumption: polished)
 DETECTION_SPREAD = 0.3  # of ln(S): from 10 % to 90 % detection over a factor of 2.2 in signal (assumption)
 DATASHEET_DETECTION = 0.9  # detection probability at a datasheet's stated range (Ouster states > 90 %)
+SNR_AT_THRESHOLD = 12.0  # Ouster's datasheet quotes its weakest returns' accuracy at SNR 12
 RETRO_FULL_SCALE = 100.0  # ρ_eff at which a reflectivity_8bit sensor reports 255 (assumption)
 
 
@@ -113,6 +117,11 @@ class ReturnModel:
     def detection_probability(self, signal) -> np.ndarray:
         s = np.maximum(np.asarray(signal, np.float64), 1e-300)
         return ndtr(np.log(s / self.s_threshold) / DETECTION_SPREAD + ndtri(DATASHEET_DETECTION))
+
+    def snr(self, signal) -> np.ndarray:
+        """The signal-to-noise ratio of a return: ``SNR_AT_THRESHOLD`` at the detection threshold, in
+        proportion to the signal above it (what Ouster reports as its signal channel, up to a scale)."""
+        return SNR_AT_THRESHOLD * np.asarray(signal, np.float64) / self.s_threshold
 
     def noise_sigma(self, signal) -> np.ndarray:
         s = np.maximum(np.asarray(signal, np.float64), 1e-300)

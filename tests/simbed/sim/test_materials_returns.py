@@ -379,6 +379,9 @@ def test_a_realistic_recording_writes_intensity_and_loses_weak_returns(tmp_path)
     ground = pts_r[:, 2] < -1.5  # the road around the car (sensor 1.73 m up)
     up = pts_r[:, 2] > 0.5  # façades, trees, cars' cabins
     assert np.median(int_r[up]) > 2 * np.median(int_r[ground])
+    meta = real.point_meta(1)
+    assert set(meta) >= {"echo", "snr"} and "snr" not in ideal.point_meta(1)
+    assert np.all(meta["snr"] > 0) and np.median(meta["snr"]) > 12  # most returns well above the threshold
 
 
 def test_the_realistic_model_is_refused_for_a_sensor_without_its_figures(tmp_path):
