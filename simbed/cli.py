@@ -240,6 +240,9 @@ def demo(
     test_frames: int = typer.Option(400, help="Frames of the test drive."),
     particles: int = typer.Option(10000, help="Particles for global localization."),
     overwrite: bool = typer.Option(False, help="Replace the demo that OUT holds (finished or not)."),
+    sensor_model: str = typer.Option(
+        "ideal", help="Both drives' LiDAR: ideal, or realistic (materials decide returns, noise, intensity)."
+    ),
 ) -> None:
     """Map town_small, record a test drive with other parked cars and moving actors, localize globally in
     the map, and print the metrics (plots in OUT/results). Run again with the same options, an
@@ -249,7 +252,7 @@ def demo(
 
     s = run_demo(
         out,
-        DemoSettings(seed=seed, test_frames=test_frames, particles=particles),
+        DemoSettings(seed=seed, test_frames=test_frames, particles=particles, sensor_model=sensor_model),
         device=device,
         say=typer.echo,
         overwrite=overwrite,

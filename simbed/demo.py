@@ -40,6 +40,7 @@ class DemoSettings:
     actors: int = 10
     particles: int = 10000
     seed: int = 0
+    sensor_model: str = "ideal"  # both drives' simulated LiDAR: ideal or realistic (simbed.sim.lidar)
 
     def check(self, device: str = "cpu") -> None:
         """Every setting (and the device) checked before the demo writes or records anything: a bad one
@@ -63,8 +64,16 @@ class DemoSettings:
                 name = options.get(key, f"demo setting {key}")
                 raise InputError(f"{name} must be >= {least}, got {value}")
         resolve_scene(self.scene)
-        load_spec(self.sensor)
+        spec = load_spec(self.sensor)
         resolve_device(device)
+        from simbed.sim.lidar import SENSOR_MODELS
+
+        if self.sensor_model not in SENSOR_MODELS:
+            raise InputError(f"--sensor-model {self.sensor_model!r}: expected {', '.join(SENSOR_MODELS)}")
+        if self.sensor_model == "realistic":
+            from simbed.sim.returns import ReturnModel
+
+            ReturnModel.for_spec(spec)
 
 
 def _complete(seq_dir: Path) -> bool:
@@ -144,6 +153,7 @@ def _run_demo(out: Path, s: DemoSettings, device: str, say) -> dict:
             device=device,
             overwrite=True,
             progress=True,
+            sensor_model=s.sensor_model,
         )
         say(f"  {r.frames} frames, {r.distance_driven_m:.0f} m driven")
     step("mapping drive", t0)
@@ -179,6 +189,7 @@ def _run_demo(out: Path, s: DemoSettings, device: str, say) -> dict:
             device=device,
             overwrite=True,
             progress=True,
+            sensor_model=s.sensor_model,
         )
     step("test drive", t0)
 

@@ -600,3 +600,11 @@ def test_the_markings_raster_only_skips_points_far_from_any_line():
     xy = rng.uniform(-t.size_m / 2, t.size_m / 2, (200_000, 2))
     np.testing.assert_array_equal(mk.painted(xy), mk._painted(xy))
     assert mk.painted(xy).sum() > 100
+
+
+def test_the_demo_checks_its_sensor_model_before_it_records():
+    from simbed.demo import DemoSettings
+
+    DemoSettings(sensor_model="realistic").check()
+    with pytest.raises(InputError, match="--sensor-model 'fancy'"):
+        DemoSettings(sensor_model="fancy").check()
