@@ -66,14 +66,9 @@ class DemoSettings:
         resolve_scene(self.scene)
         spec = load_spec(self.sensor)
         resolve_device(device)
-        from simbed.sim.lidar import SENSOR_MODELS
+        from simbed.sim.lidar import sensor_setup
 
-        if self.sensor_model not in SENSOR_MODELS:
-            raise InputError(f"--sensor-model {self.sensor_model!r}: expected {', '.join(SENSOR_MODELS)}")
-        if self.sensor_model == "realistic":
-            from simbed.sim.returns import ReturnModel
-
-            ReturnModel.for_spec(spec)
+        sensor_setup(spec, self.sensor_model)
 
 
 def _complete(seq_dir: Path) -> bool:

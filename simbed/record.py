@@ -20,9 +20,7 @@ from simbed.scenes.lanes import MAX_SPEED_MPS, check_lane, lane_from_waypoints, 
 from simbed.scenes.routes import Route, is_waypoint_file, load_waypoints, make_route
 from simbed.sim.actors import ACTOR_KINDS, actors_along_route, check_actor_paths, read_actor_paths
 from simbed.sim.drive import Drive
-from simbed.sim.lidar import SENSOR_MODELS, check_return_mode
-from simbed.sim.returns import ReturnModel
-from simbed.sim.weather import Weather
+from simbed.sim.lidar import sensor_setup
 from simbed.sim.world import World, resolve_scene
 
 
@@ -108,14 +106,7 @@ def record(
         raise InputError(f"dropout must be in [0, 1), got {dropout}")
     if dropout > spec.dropout_prob:
         spec = dataclasses.replace(spec, dropout_prob=float(dropout))
-    if sensor_model not in SENSOR_MODELS:
-        raise InputError(f"sensor model {sensor_model!r}: expected {', '.join(SENSOR_MODELS)}")
-    sky = Weather.parse(weather)
-    if sensor_model == "realistic":
-        ReturnModel.for_spec(spec)  # the spec has what the model needs, before anything is written
-        check_return_mode(spec, return_mode)
-    elif sky.kind != "clear" or return_mode != "strongest":
-        raise InputError("--weather and --returns need the realistic sensor model (--sensor-model realistic)")
+    _, sky = sensor_setup(spec, sensor_model, weather, return_mode)  # before anything is written
     if fmt not in ("kitti", *BAG_FORMATS):
         raise InputError(f"format {fmt!r}: expected kitti, {', '.join(BAG_FORMATS)}")
     if fmt != "kitti":

@@ -13,10 +13,8 @@ import numpy as np
 from rangemcl.errors import InputError
 from rangemcl.sensors import LidarSpec
 from simbed.scenes.routes import Route
-from simbed.sim.lidar import SENSOR_MODELS, SimLidar, Sweep
-from simbed.sim.returns import ReturnModel
+from simbed.sim.lidar import SimLidar, Sweep, sensor_setup
 from simbed.sim.vehicle import OdometryNoise, RouteFollower, WheelGyroOdometry, wheel_torque
-from simbed.sim.weather import Weather
 from simbed.sim.world import World
 
 
@@ -72,16 +70,7 @@ class Drive:
         self.car = world.car
         self.controller = RouteFollower(self.car, route, cruise_mps=cruise_mps)
         self.odometry = WheelGyroOdometry(self.car, rng, odometry_noise)
-        if sensor_model not in SENSOR_MODELS:
-            raise InputError(
-                f"unknown sensor model {sensor_model!r} (choose from {', '.join(SENSOR_MODELS)})"
-            )
-        realistic = sensor_model == "realistic"
-        sky = Weather.parse(weather)
-        if not realistic and (sky.kind != "clear" or return_mode != "strongest"):
-            raise InputError(
-                "weather and return modes need the realistic sensor model (--sensor-model realistic)"
-            )
+        returns, sky = sensor_setup(spec, sensor_model, weather, return_mode)
         self.sensor_model = sensor_model
         self.lidar = SimLidar(
             spec,
@@ -89,8 +78,8 @@ class Drive:
             rng,
             skew=skew,
             actor_mesh_ids=world.actor_handles,
-            materials=world.materials if realistic else None,
-            returns=ReturnModel.for_spec(spec, sky) if realistic else None,
+            materials=None if returns is None else world.materials,
+            returns=returns,
             weather=sky,
             return_mode=return_mode,
         )

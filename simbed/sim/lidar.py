@@ -29,11 +29,31 @@ from rangemcl.raycast import RayCaster
 from rangemcl.se2 import interpolate_poses
 from rangemcl.sensors import LidarSpec
 from simbed.sim.echoes import AXIS_WEIGHT, RETURN_MODES, echoes, edge_pixels, footprint_offsets, trace
+from simbed.sim.returns import ReturnModel
 from simbed.sim.weather import Weather
 
 LABEL_STATIC = 0
 LABEL_ACTOR = 1
 SENSOR_MODELS = ("ideal", "realistic")
+
+
+def sensor_setup(
+    spec: LidarSpec, sensor_model: str, weather: str = "clear", return_mode: str = "strongest"
+) -> tuple[ReturnModel | None, Weather]:
+    """The realistic sensor's return model (None for the ideal one) and the weather, every bad choice one
+    :class:`InputError` line: an unknown model, weather or return mode, a spec without the realistic
+    model's figures, weather or return modes asked of the ideal sensor."""
+    if sensor_model not in SENSOR_MODELS:
+        raise InputError(f"sensor model {sensor_model!r}: expected {', '.join(SENSOR_MODELS)}")
+    sky = Weather.parse(weather)
+    check_return_mode(spec, return_mode)
+    if sensor_model == "ideal":
+        if sky.kind != "clear" or return_mode != "strongest":
+            raise InputError(
+                "weather and return modes need the realistic sensor model (--sensor-model realistic)"
+            )
+        return None, sky
+    return ReturnModel.for_spec(spec, sky), sky
 
 
 def check_return_mode(spec: LidarSpec, mode: str) -> None:
@@ -113,8 +133,8 @@ class SimLidar:
         self.column_time_s = np.arange(w) / w * self.period_s  # offset of each column from sweep start
         self._ranges = np.zeros((w, h), np.float32)
         self._labels = np.zeros((w, h), np.uint8)
-        self._echoes: list[np.ndarray] | None = None  # realistic: (range, signal, rho, label) (W, H) each,
-        # for the strongest echo, then the last
+        # realistic: [range, signal, rho, label] arrays (W, H) of the strongest echo, then of the last
+        self._echoes: list[list[np.ndarray]] | None = None
         self._footprint = None
         if returns is not None:
             self._echoes = [

@@ -51,6 +51,7 @@ from scipy.spatial import cKDTree
 
 from rangemcl.common.yamlio import parse_yaml, read_text
 from rangemcl.errors import InputError
+from simbed.scenes.towngen.mjcf import ASPHALT_RGB, GRASS_RGB, PARKING_RGB, SIDEWALK_RGB
 
 TABLE_FILE = Path(__file__).with_name("materials.yaml")
 MATERIAL_KEYS = ("reflectivity", "mirror", "retro", "transmission", "source")
@@ -72,13 +73,13 @@ TOWN_MATERIALS = {
 }
 TOWN_TERRAIN_MATERIAL = "terrain"  # the towns' terrain material: its texture says what lies where
 
-# The towns' ground texture colours (simbed.scenes.towngen.mjcf) and their materials; grass is shaded
-# by the relief, so each pixel takes the material of the nearest reference colour.
+# The towns' ground texture colours (simbed.scenes.towngen.mjcf paints them) and their materials; grass
+# is shaded by the relief, so each pixel takes the material of the nearest reference colour.
 GROUND_COLOURS = {
-    (56, 56, 61): "asphalt",  # roads
-    (74, 74, 79): "asphalt",  # parking strips
-    (152, 150, 144): "concrete",  # sidewalks
-    (92, 124, 70): "grass",
+    ASPHALT_RGB: "asphalt",
+    PARKING_RGB: "asphalt",
+    SIDEWALK_RGB: "concrete",
+    GRASS_RGB: "grass",
 }
 
 # Car paint: the diffuse part of its reflectance follows the pigment. A car's colour stands in for it:
@@ -248,12 +249,12 @@ class GroundTexture:
         return self.ids[r, c]
 
 
-@dataclass(frozen=True)
 class RoadMarkings:
-    """Lane markings on a town's road surfaces, from its road graph: a dashed centre line and a solid line
-    ``EDGE_INSET_M`` inside each road edge, ``LINE_WIDTH_M`` wide; none within ``road_width_m`` of a
-    junction (degree other than 2), where the roads meet. Dashes: ``DASH_M`` painted, ``GAP_M`` not
-    (a common two-lane road's pattern; an assumption, not any one country's rule)."""
+    """Lane markings on a town's road surfaces, from its road graph (``nodes`` (K, 2), ``edges`` (E, 2)):
+    a dashed centre line and a solid line ``EDGE_INSET_M`` inside each road edge, ``LINE_WIDTH_M`` wide;
+    none within ``road_width_m`` of a junction (degree other than 2), where the roads meet. Dashes:
+    ``DASH_M`` painted, ``GAP_M`` not (a common two-lane road's pattern; an assumption, not any one
+    country's rule)."""
 
     LINE_WIDTH_M = 0.15
     EDGE_INSET_M = 0.3
@@ -262,54 +263,47 @@ class RoadMarkings:
     SAMPLE_M = 0.25  # spacing of the centre-line samples the lookup searches
     RASTER_M = 1.0  # cells of the raster that says where a line may be
 
-    nodes: np.ndarray
-    edges: np.ndarray
-    road_width_m: float
-
-    def __post_init__(self) -> None:
+    def __init__(self, nodes: np.ndarray, edges: np.ndarray, road_width_m: float):
+        self.road_width_m = float(road_width_m)
         pts, dirs, along, lengths = [], [], [], []
-        for a, b in self.edges:
-            pa, pb = self.nodes[a], self.nodes[b]
+        for a, b in edges:
+            pa, pb = nodes[a], nodes[b]
             length = float(np.linalg.norm(pb - pa))
             if length <= 0:
                 continue
             n = max(2, math.ceil(length / self.SAMPLE_M) + 1)
             s = np.linspace(0.0, length, n)
-            u = (pb - pa) / length
-            pts.append(pa + s[:, None] * u)
-            dirs.append(np.repeat(u[None], n, 0))
+            pts.append(pa + s[:, None] * ((pb - pa) / length))
+            dirs.append(np.repeat(((pb - pa) / length)[None], n, 0))
             along.append(s)
             lengths.append(np.full(n, length))
-        object.__setattr__(self, "_pts", np.concatenate(pts))
-        object.__setattr__(self, "_dirs", np.concatenate(dirs))
-        object.__setattr__(self, "_along", np.concatenate(along))
-        object.__setattr__(self, "_length", np.concatenate(lengths))
-        object.__setattr__(self, "_tree", cKDTree(self._pts))
-        degree = np.bincount(self.edges.ravel(), minlength=len(self.nodes))
-        junctions = self.nodes[degree != 2]
-        object.__setattr__(self, "_junctions", cKDTree(junctions) if len(junctions) else None)
+        self._pts, self._dirs = np.concatenate(pts), np.concatenate(dirs)
+        self._along, self._length = np.concatenate(along), np.concatenate(lengths)
+        self._tree = cKDTree(self._pts)
+        junctions = nodes[np.bincount(edges.ravel(), minlength=len(nodes)) != 2]
+        self._junctions = cKDTree(junctions) if len(junctions) else None
         # a coarse raster of the cells near any line: only points there are looked up in the tree
         cell = self.RASTER_M
-        lo = self._pts.min(axis=0) - self.road_width_m
-        hi = self._pts.max(axis=0) + self.road_width_m
-        shape = np.ceil((hi - lo) / cell).astype(int) + 1
-        gx, gy = np.meshgrid(
-            lo[0] + (np.arange(shape[0]) + 0.5) * cell,
-            lo[1] + (np.arange(shape[1]) + 0.5) * cell,
-            indexing="ij",
-        )
-        centres = np.column_stack([gx.ravel(), gy.ravel()])
-        d, k = self._tree.query(centres)
-        lateral = np.abs(
-            (centres - self._pts[k])[:, 0] * self._dirs[k][:, 1]
-            - (centres - self._pts[k])[:, 1] * self._dirs[k][:, 0]
-        )
+        self._raster_lo = self._pts.min(axis=0) - self.road_width_m
+        shape = np.ceil((self._pts.max(axis=0) + self.road_width_m - self._raster_lo) / cell).astype(int) + 1
+        gx, gy = (self._raster_lo[i] + (np.arange(shape[i]) + 0.5) * cell for i in range(2))
+        centres = np.column_stack([c.ravel() for c in np.meshgrid(gx, gy, indexing="ij")])
+        d, _, lateral, _ = self._nearest(centres)
         slack = cell * 0.75 + self.LINE_WIDTH_M  # a cell's half diagonal and the line's width
-        edge = self.road_width_m / 2 - self.EDGE_INSET_M
-        near = (lateral <= slack) | (np.abs(lateral - edge) <= slack)
-        near &= d <= self.road_width_m / 2 + slack
-        object.__setattr__(self, "_raster", near.reshape(shape))
-        object.__setattr__(self, "_raster_lo", lo)
+        near = (lateral <= slack) | (np.abs(lateral - self._edge_offset) <= slack)
+        self._raster = (near & (d <= self.road_width_m / 2 + slack)).reshape(shape)
+
+    @property
+    def _edge_offset(self) -> float:
+        return self.road_width_m / 2 - self.EDGE_INSET_M
+
+    def _nearest(self, xy: np.ndarray):
+        """Per point: distance to the nearest centre-line sample, its index, the point's distance across
+        the road from the centre line and its position along its road (m)."""
+        dist, k = self._tree.query(xy)
+        d = xy - self._pts[k]
+        u = self._dirs[k]
+        return dist, k, np.abs(d[:, 0] * u[:, 1] - d[:, 1] * u[:, 0]), self._along[k] + (d * u).sum(1)
 
     def painted(self, xy: np.ndarray) -> np.ndarray:
         """(N,) bool: the points ``xy`` (N, 2) lie on a marking."""
@@ -326,14 +320,10 @@ class RoadMarkings:
     def _painted(self, xy: np.ndarray) -> np.ndarray:
         if len(xy) == 0:
             return np.zeros(0, bool)
-        _, k = self._tree.query(xy)
-        d = xy - self._pts[k]
-        u = self._dirs[k]
-        lateral = np.abs(d[:, 0] * u[:, 1] - d[:, 1] * u[:, 0])
-        s = self._along[k] + (d * u).sum(1)
+        _, k, lateral, s = self._nearest(xy)
         half = self.LINE_WIDTH_M / 2
         centre = (lateral <= half) & (np.mod(s, self.DASH_M + self.GAP_M) < self.DASH_M)
-        edge = np.abs(lateral - (self.road_width_m / 2 - self.EDGE_INSET_M)) <= half
+        edge = np.abs(lateral - self._edge_offset) <= half
         on = (centre | edge) & (s >= 0) & (s <= self._length[k])  # on the road, not beyond its ends
         if self._junctions is not None:
             dj, _ = self._junctions.query(xy)
@@ -411,12 +401,13 @@ class SceneMaterials:
         self._glass = self.table.index.get("glass")
         # boxes with windows: world-to-geom transforms and half sizes (static geoms only)
         win = np.flatnonzero(self.pattern == PATTERN_WINDOWS)
-        self._win_R = np.array([data.geom_xmat[g].reshape(3, 3) for g in win]).reshape(-1, 3, 3)
-        self._win_t = np.array([data.geom_xpos[g] for g in win]).reshape(-1, 3)
-        self._win_half = np.array([model.geom_size[g] for g in win]).reshape(-1, 3)
+        self._win_R = np.asarray(data.geom_xmat[win]).reshape(-1, 3, 3)
+        self._win_t = np.asarray(data.geom_xpos[win]).reshape(-1, 3)
+        self._win_half = np.asarray(model.geom_size[win]).reshape(-1, 3)
         self._win_slot = np.full(model.ngeom, -1, np.int64)
         self._win_slot[win] = np.arange(len(win))
         self._face_geoms: dict[int, np.ndarray] = {}
+        self._flat: np.ndarray | None = None
 
     # --- resolution ------------------------------------------------------------------------------------
     def _name(self, obj, i: int) -> str:
@@ -488,18 +479,23 @@ class SceneMaterials:
         """Tell the lookup which geom each face of caster mesh ``handle`` came from (``face_map``: the
         caster's kept faces, :attr:`rangemcl.raycast.MeshInfo.face_map`)."""
         self._face_geoms[int(handle)] = np.asarray(geom_ids_per_face, np.int32)[np.asarray(face_map)]
-        # every mesh's faces in one array, each mesh at its offset (one gather per lookup)
+        self._flat = None  # rebuilt at the next lookup
+
+    def _gather_table(self) -> None:
+        """Every mesh's faces in one array, each mesh at its offset (one gather per lookup)."""
         handles = sorted(self._face_geoms)
         self._offset = np.full(handles[-1] + 2, -1, np.int64)
         sizes = np.array([len(self._face_geoms[h]) for h in handles], np.int64)
         self._offset[handles] = np.concatenate([[0], np.cumsum(sizes)[:-1]])
-        self._flat = np.concatenate([self._face_geoms[h] for h in handles] + [np.full(1, -1, np.int32)])
+        self._flat = np.concatenate([self._face_geoms[h] for h in handles])
 
     def geoms_of(self, mesh_ids: np.ndarray, face_ids: np.ndarray) -> np.ndarray:
         """(N,) geom id of each hit (-1 for a miss or a mesh the lookup does not know)."""
         out = np.full(len(mesh_ids), -1, np.int32)
         if not self._face_geoms:
             return out
+        if self._flat is None:
+            self._gather_table()
         m = np.asarray(mesh_ids, np.int64)
         inside = (m >= 0) & (m < len(self._offset))
         off = np.where(inside, self._offset[np.where(inside, m, -1)], -1)

@@ -40,7 +40,7 @@ OVERLAP_M = 1.0  # the transmitter and receiver fields of view overlap fully fro
 RAIN_CLUTTER_PER_MM_H = 0.001  # droplet echoes per pulse and mm/h (assumption: about 1 % at 10 mm/h)
 RAIN_CLUTTER_MAX_M = 5.0  # droplet echoes lie within this range (assumption)
 DROPLET_REFLECTIVITY = 0.05  # a droplet echo's equivalent reflectivity (assumption)
-_GRID = 256  # range samples of the fog echo's distribution per pulse
+_GRID = 4096  # range samples of the fog echo's cumulative distribution (log-spaced)
 
 
 @dataclass(frozen=True)
@@ -99,14 +99,12 @@ class Weather:
             lo = max(OVERLAP_M, min_range_m)
             far = np.where(hard_range_m > 0, hard_range_m, lo + 10.0 / alpha)
             far = np.maximum(far, lo * 1.001)
-            # draw r with density proportional to exp(-2 alpha r)/r^2 on [lo, far], per pulse, by inverse CDF
-            u = (np.arange(_GRID) + 0.5) / _GRID
-            grid = lo * (far[:, None] / lo) ** u[None, :]  # log-spaced
-            dens = np.exp(-2 * alpha * grid) / grid**2 * grid  # times dr/du (log spacing)
-            cdf = np.cumsum(dens, axis=1)
-            cdf /= cdf[:, -1:]
-            pick = (cdf < rng.random(n)[:, None]).sum(axis=1).clip(0, _GRID - 1)
-            r = grid[np.arange(n), pick]
+            # draw r with density proportional to exp(-2 alpha r)/r^2 on [lo, far] by inverse CDF: one
+            # cumulative table over [lo, the farthest bound], each pulse drawing below its own bound's value
+            grid = np.geomspace(lo, float(far.max()), _GRID)
+            dens = np.exp(-2 * alpha * grid) / grid**2
+            cdf = np.concatenate([[0.0], np.cumsum(0.5 * (dens[1:] + dens[:-1]) * np.diff(grid))])
+            r = np.interp(rng.random(n) * np.interp(far, grid, cdf), cdf, grid)
             s = rho_fog * np.exp(-2 * alpha * r) / r**2
         elif self.kind == "rain":
             p = 1.0 - math.exp(-RAIN_CLUTTER_PER_MM_H * self.rain_mm_h)

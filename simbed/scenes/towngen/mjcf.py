@@ -18,10 +18,10 @@ from simbed.scenes.towngen.planner import Planner
 from simbed.scenes.towngen.style import DEFAULT_STYLE, TownStyle, style_name
 
 # The ground texture's colours (sRGB 0..255); grass is shaded by the relief, ± this fraction at its extremes.
-_ASPHALT_RGB = (56, 56, 61)
-_PARKING_RGB = (74, 74, 79)
-_SIDEWALK_RGB = (152, 150, 144)
-_GRASS_RGB = (92, 124, 70)
+ASPHALT_RGB = (56, 56, 61)
+PARKING_RGB = (74, 74, 79)
+SIDEWALK_RGB = (152, 150, 144)
+GRASS_RGB = (92, 124, 70)
 _GRASS_SHADE_FRAC = 0.12
 
 
@@ -189,10 +189,10 @@ def paint_ground(size_m: float, px_m: float, nodes, edges, natural, style: TownS
     a = nodes[edges[:, 0]]
     b = nodes[edges[:, 1]]
     img = np.empty((n, n, 3), dtype=np.uint8)
-    asphalt = np.array(_ASPHALT_RGB)
-    parking = np.array(_PARKING_RGB)
-    sidewalk = np.array(_SIDEWALK_RGB)
-    grass = np.array(_GRASS_RGB)
+    asphalt = np.array(ASPHALT_RGB)
+    parking = np.array(PARKING_RGB)
+    sidewalk = np.array(SIDEWALK_RGB)
+    grass = np.array(GRASS_RGB)
     sidewalk_m = style.building_min_offset_m - style.sidewalk_paint_inset_m
     parking_m = style.parking_offset_m + style.parking_paint_beyond_m
     for i in range(n):

@@ -606,5 +606,5 @@ def test_the_demo_checks_its_sensor_model_before_it_records():
     from simbed.demo import DemoSettings
 
     DemoSettings(sensor_model="realistic").check()
-    with pytest.raises(InputError, match="--sensor-model 'fancy'"):
+    with pytest.raises(InputError, match="sensor model 'fancy': expected ideal, realistic"):
         DemoSettings(sensor_model="fancy").check()
