@@ -18,7 +18,8 @@ Every step is skipped when its output is complete (a town's files and sidecar, a
 ``meta.yaml`` says complete, a map folder that opens), and the suites skip their finished trials, so the
 same command continues an interrupted run: without ``--run-seed`` it takes the run seed that
 ``OUT/towns.yaml`` recorded. Trial keys name each town's scene by its path, so a run continues where it
-was written.
+was written. A town whose trials all have their rows is not prepared again: a run continues from its
+``towns.yaml`` and the towns' ``results.csv`` alone, making only the towns with trials left.
 """
 
 from __future__ import annotations
@@ -312,6 +313,9 @@ def run_generalization(
     record, towns = start_run(out, s, run_seed, say)
     for town in towns:
         town_dir = out / "towns" / town.name
+        if town_finished(out, town, configs):  # its scene, drives and map are not needed again
+            say(f"[{town.name}] every trial of this run is finished; the town is not prepared again")
+            continue
         stats = prepare_town(town, town_dir, s, workers=workers, device=device, say=say)
         entry = next(t for t in record["towns"] if t["name"] == town.name)
         entry.update(stats)
@@ -573,6 +577,13 @@ def town_rows(out: Path, towns: list[TownDraw], configs: tuple[SuiteConfig, ...]
                     }
                 )
     return rows
+
+
+def town_finished(out: Path, town: TownDraw, configs: tuple[SuiteConfig, ...]) -> bool:
+    """Whether every trial of these configs in the town has its row in the town's results.csv (a run
+    continued from the rows alone, its towns' files gone, makes only the towns with trials left)."""
+    done = {r.get("key") for r in read_results(out / "towns" / town.name / "suite" / "results.csv")}
+    return _trial_keys(out, town, configs) <= done
 
 
 def expected_trials(out: Path, towns: list[TownDraw], configs: tuple[SuiteConfig, ...]) -> int:

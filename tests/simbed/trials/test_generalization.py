@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import os
+import shutil
 import subprocess
 import sys
 
@@ -276,6 +277,15 @@ def test_quick_run_end_to_end_and_continued(tmp_path):
     assert len({r["drive_seed"] + r["start_frame"] + r["seed"] for r in rows}) == 1  # the same trial
     assert "short" in (suite / "sensors.md").read_text() and "default" in (suite / "sensors.md").read_text()
     assert (trial_dir / "metrics.json").stat().st_mtime_ns == stamp
+    # a run continued from its rows alone (the town's files gone) runs nothing and makes no town again
+    town_dir = out / "towns" / town.name
+    for made in ("map", "mapping_drive", "suite/drives"):
+        shutil.rmtree(town_dir / made)
+    rows_only = simbed(*args[:-4], "--workers", "2")
+    assert rows_only.returncode == 0, rows_only.stderr
+    assert "every trial of this run is finished; the town is not prepared again" in rows_only.stdout
+    assert not (town_dir / "map").exists() and not (town_dir / "mapping_drive").exists()
+    assert "1/1 trials successful" in rows_only.stdout
     other = simbed(*args[:-3], "8")
     assert other.returncode == 2 and "holds another draw of towns (run seed 7" in other.stderr
     assert len(other.stderr.strip().splitlines()) == 1
