@@ -9,10 +9,13 @@ import json
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
+from rangemcl.datasets.kitti import load_sequence
 from rangemcl.localization import LocalizerSettings
 from rangemcl.localization.pipeline import RunOptions, localize_sequence
+from rangemcl.se2 import xyyaw_of
 from simbed.record import record
 
 
@@ -63,6 +66,18 @@ def test_global_localization_in_a_built_map_against_ground_truth(town):
     assert summary["converged_frame"] is not None and summary["converged_frame"] < 45
     assert m["success"] and m["final_location_error_m"] < 0.5
     assert (out / "particles.png").is_file() and (out / "trajectory.png").is_file()
+    # the first correct fix: the convergence frame's compute from frames.csv and the distance driven
+    assert m["first_fix_frame"] == summary["converged_frame"] == m["converged_frame"]
+    frames = np.genfromtxt(out / "frames.csv", delimiter=",", names=True)
+    k = m["first_fix_frame"] - m["first_frame"]
+    assert m["first_fix_seconds"] == pytest.approx(frames["seconds"][: k + 1].sum(), rel=1e-3)
+    seq = load_sequence(town / "test_run")
+    truth = xyyaw_of(seq.poses[: k + 1] @ seq.calib_Tr)[:, :2]
+    assert m["first_fix_driven_m"] == pytest.approx(np.linalg.norm(np.diff(truth, axis=0), axis=1).sum())
+    # before the first frame: the map opened, the filter built, the place prior loaded (stored in the map)
+    parts = summary["startup"]
+    assert summary["startup_seconds"] == pytest.approx(parts["load_s"] + parts["filter_s"] + parts["prior_s"])
+    assert frames["seconds"][0] < 5 * np.median(frames["seconds"][: k + 1]) + 0.5  # no start-up in frame 0
 
 
 def test_cli_localize_and_evaluate(town):

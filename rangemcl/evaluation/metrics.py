@@ -13,6 +13,10 @@
   (``scan_updates``).
 * **Location RMSE** over (x, y) and **yaw RMSE** in degrees, over the frames from convergence on.
 * **Frames to converge**: from the first frame of the run.
+* **First correct fix** (given the seconds each frame took): the first convergence declared within
+  ``success_m`` of the truth (``first_fix_frame``), the compute it took from the first frame through that
+  frame's own (``first_fix_seconds``) and the distance the car drove meanwhile (``first_fix_driven_m``,
+  along the true path); None when no convergence was correct. A wrong convergence before it costs its time.
 * **Wrong convergences** (given the frames where the filter declared convergence): declared while more
   than ``success_m`` off, each with its frame, its error and the frame of the re-spread that undid it
   (``caught_frame``, None if none did); a run with one is reported as such even if it recovers.
@@ -69,12 +73,14 @@ def localization_metrics(
     caught_within: int = 10,
     frames_with_scan: int | None = None,
     updates: np.ndarray | None = None,
+    seconds: np.ndarray | None = None,
 ) -> dict:
     """The metrics of the module docstring as a JSON-ready dict (NaN-free: missing values are None).
     Frame numbers (``converged_frame`` and the event lists) count from the first row of the arrays.
     ``frames_with_scan``: how many frames had a scan with valid points for the filter; ``updates``
     ``(N,)`` bool: the frames at which the filter weighed a scan (then success needs one from the
-    convergence frame on). None: not known (the fields are left out, success as the paper's)."""
+    convergence frame on); ``seconds`` ``(N,)``: each frame's compute (then the first correct fix's
+    figures). None: not known (the fields are left out, success as the paper's)."""
     loc, yaw = pose_errors(estimate_xyyaw, truth_xyyaw)
     n = len(loc)
     scans: dict = {}
@@ -103,6 +109,9 @@ def localization_metrics(
         if w["caught_frame"] is None or w["caught_frame"] - w["frame"] > caught_within
     )
     events["caught_within_frames"] = caught_within
+    if seconds is not None:
+        onsets = convergence_frames if convergence_frames is not None else [converged_frame]
+        events.update(first_correct_fix(loc, truth_xyyaw, onsets, seconds, success_m=success_m))
     out: dict = {
         "frames": n,
         "converged": converged_frame is not None,
@@ -176,6 +185,34 @@ def convergence_events(
     }
 
 
+def first_correct_fix(
+    location_error_m: np.ndarray,
+    truth_xyyaw: np.ndarray,
+    convergence_frames: list[int | None],
+    seconds: np.ndarray,
+    *,
+    success_m: float = 5.0,
+) -> dict:
+    """The first convergence declared within ``success_m`` of the truth (an index into the arrays), the
+    seconds of compute from the first frame through it (``seconds`` ``(N,)``, each frame's) and the
+    distance driven meanwhile along the true path ``(N, 3)``; all None when no convergence was correct."""
+    err = np.asarray(location_error_m, np.float64)
+    secs = np.asarray(seconds, np.float64).reshape(-1)
+    if len(secs) != len(err):
+        raise InputError(f"seconds: {len(secs)} values for {len(err)} frames")
+    right = sorted(int(f) for f in convergence_frames if f is not None and 0 <= int(f) < len(err))
+    right = [f for f in right if err[f] <= success_m]
+    if not right:
+        return {"first_fix_frame": None, "first_fix_seconds": None, "first_fix_driven_m": None}
+    f = right[0]
+    xy = np.asarray(truth_xyyaw, np.float64)[: f + 1, :2]
+    return {
+        "first_fix_frame": f,
+        "first_fix_seconds": float(secs[: f + 1].sum()),
+        "first_fix_driven_m": float(np.hypot(*np.diff(xy, axis=0).T).sum()),
+    }
+
+
 def evaluate_results(results_dir, gt_path, *, check_every: int = 100, success_m: float = 5.0) -> dict:
     """Metrics of a ``rangemcl localize`` results folder against a ground-truth ``poses.txt`` (the same
     convention as the sequence's, so the folder's ``estimate_kitti.txt`` compares line by line)."""
@@ -223,6 +260,7 @@ def evaluate_results(results_dir, gt_path, *, check_every: int = 100, success_m:
         recovery_frames=rec_frames,
         frames_with_scan=with_scan if isinstance(with_scan, int) and 0 <= with_scan <= len(est) else None,
         updates=_updated_column(results_dir / "frames.csv", len(est)),
+        seconds=_seconds_column(results_dir / "frames.csv", len(est)),
     )
     shift_event_frames(metrics, first)
     metrics["first_frame"] = first
@@ -247,6 +285,23 @@ def _updated_column(path: Path, n: int) -> np.ndarray | None:
         return None
 
 
+def _seconds_column(path: Path, n: int) -> np.ndarray | None:
+    """The ``seconds`` column of a results folder's ``frames.csv`` (each frame's compute), when it has one
+    for each of the ``n`` frames; else None."""
+    try:
+        lines = path.read_text().splitlines()
+    except OSError:
+        return None
+    cols = lines[0].split(",") if lines else []
+    if "seconds" not in cols or len(lines) != n + 1:
+        return None
+    at = cols.index("seconds")
+    try:
+        return np.array([float(line.split(",")[at]) for line in lines[1:]])
+    except (IndexError, ValueError):
+        return None
+
+
 def _evaluate_partial(results_dir: Path, gt_path, *, check_every: int, success_m: float) -> dict:
     """A run that was killed outright (no summary.json, no estimate files): its ``frames.csv``, written
     and flushed frame by frame, has every finished frame's planar estimate and events. The sensor-to-pose
@@ -265,7 +320,7 @@ def _evaluate_partial(results_dir: Path, gt_path, *, check_every: int, success_m
     need = ("frame", "x", "y", "yaw", "converged", "recovered")
     if any(c not in cols for c in need):
         raise InputError(f"{path}: not a `rangemcl localize` frames.csv (columns {', '.join(need)} expected)")
-    rows, updated = [], []
+    rows, updated, secs = [], [], []
     for n, line in enumerate(lines[1:], start=2):
         parts = line.split(",")
         if len(parts) != len(cols):
@@ -273,6 +328,7 @@ def _evaluate_partial(results_dir: Path, gt_path, *, check_every: int, success_m
         try:
             rows.append([float(parts[cols.index(c)]) for c in need])
             updated.append(parts[cols.index("updated")] == "1" if "updated" in cols else False)
+            secs.append(float(parts[cols.index("seconds")]) if "seconds" in cols else 0.0)
         except ValueError:
             raise InputError(f"{path}: line {n} is not numbers") from None
     if not rows:
@@ -298,6 +354,7 @@ def _evaluate_partial(results_dir: Path, gt_path, *, check_every: int, success_m
         convergence_frames=onsets,
         recovery_frames=recoveries,
         updates=np.asarray(updated, bool) if "updated" in cols else None,
+        seconds=np.asarray(secs) if "seconds" in cols else None,
     )
     shift_event_frames(metrics, first)
     metrics["first_frame"] = first
@@ -311,6 +368,8 @@ def shift_event_frames(metrics: dict, first: int) -> None:
     """Frame numbers of a metrics dict from run-relative to the sequence's own."""
     if metrics["converged_frame"] is not None:
         metrics["converged_frame"] += first
+    if metrics.get("first_fix_frame") is not None:
+        metrics["first_fix_frame"] += first
     for w in metrics["wrong_convergences"]:
         w["frame"] += first
         if w["caught_frame"] is not None:

@@ -353,6 +353,20 @@ class MonteCarloLocalizer(SearchMixin, RecoveryMixin):
             self._count_in_budget("place prior", self.prior.nbytes)
         return self.prior
 
+    def warm_up(self, points: np.ndarray | None = None, roll_pitch=None) -> dict:
+        """What the first frames would otherwise do on the way, done before them: the place prior loaded
+        (rendered once and stored, if the map folder has none), the beam prior decided with ``points`` (the
+        first scan, as the first update would decide it) and loaded. Draws nothing from the generator and
+        leaves the cloud as it is, so a run's results do not depend on it. Returns the seconds it took."""
+        t0 = time.perf_counter()
+        if self.use_prior:
+            self.place_prior()
+            if points is not None and len(points) and self.use_beam_prior:
+                raw = self._scan_raw
+                self.prior_for(self._leveller(np.asarray(points, np.float64), roll_pitch)())
+                self._scan_raw = raw
+        return {"prior_s": time.perf_counter() - t0}
+
     def prior_for(self, levelled_points: np.ndarray, raw_points: np.ndarray | None = None) -> PlacePrior:
         """The prior a scan is matched with: the band prior, unless the scan has nothing in its high band
         (a sensor that sees nothing above the parked cars: all its beams below the horizon) and

@@ -175,6 +175,7 @@ class ParticleRenderer:
         self.explain_beyond = bool(explain_beyond)
         self._rays: tuple | None = None
         self._change_top = 3.0e38
+        wp.load_module(device=caster.device)  # this module's kernels compiled now, not at the first update
 
     def ray_costs(self, errors, measured_z=None, rendered_z=None, behind=None) -> np.ndarray:
         """Each ray's cost as the kernel charges it, in numpy: ``errors`` = measured − rendered range

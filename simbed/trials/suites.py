@@ -323,6 +323,9 @@ def run_trial(
         "key": trial.key,
         "success": success,
         "frames_to_converge": None if conv is None else conv - s["first_frame"],
+        # the first correct convergence: compute from the trial's first frame through it, metres driven
+        "fix_seconds": m.get("first_fix_seconds"),
+        "fix_driven_m": m.get("first_fix_driven_m"),
         "recoveries": s["recoveries"],
         "relocalized_after_frames": (conv - s["first_frame"] - trial.frames // 2)
         if trial.kidnap and conv is not None and s["recoveries"]
@@ -338,6 +341,7 @@ def run_trial(
         "frames_after_convergence": None if conv is None else m["frames"] - (conv - s["first_frame"]),
         "seconds_per_frame_before": s["seconds_per_frame_before_convergence_median"],
         "hz_after": s["hz_after_convergence"],
+        "startup_seconds": s.get("startup_seconds"),  # map, filter and priors before the first frame
         "seconds": time.perf_counter() - t0,
         # the drive's odometry: its distance is wheel_scale x the true one, its gyro starts this biased
         "odometry_wheel_scale": odo.get("wheel_scale"),
@@ -375,6 +379,8 @@ ROW_FIELDS = [f.name for f in fields(Trial) if f.name != "settings"] + [
     "key",
     "success",
     "frames_to_converge",
+    "fix_seconds",
+    "fix_driven_m",
     "recoveries",
     "relocalized_after_frames",
     "location_rmse_m",
@@ -388,6 +394,7 @@ ROW_FIELDS = [f.name for f in fields(Trial) if f.name != "settings"] + [
     "frames_after_convergence",
     "seconds_per_frame_before",
     "hz_after",
+    "startup_seconds",
     "seconds",
     "odometry_wheel_scale",
     "odometry_gyro_bias_deg_s",
@@ -700,6 +707,10 @@ def aggregate(rows: list[dict], by: list[str]) -> list[dict]:
                 "frames_to_converge_median": float(np.median(conv)) if conv else None,
                 "hz_after_median": float(np.median(hz)) if hz else None,
                 "seconds_before_median": float(np.median(before)) if before else None,
+                # the first correct fix (rows of earlier revisions lack it): compute seconds, metres driven
+                "fix_seconds_median": _median_of(rs, lambda r: as_number(r.get("fix_seconds"))),
+                "fix_driven_m_median": _median_of(rs, lambda r: as_number(r.get("fix_driven_m"))),
+                "startup_seconds_median": _median_of(rs, lambda r: as_number(r.get("startup_seconds"))),
                 "relocalized_after_frames_median": float(np.median(reloc)) if reloc else None,
                 # the odometry the trials ran with: distance error in per cent (median over the trials),
                 # and what is left of it after the filter's calibration (median of its absolute value)
@@ -765,7 +776,10 @@ def write_report(suite: str, rows: list[dict], out: Path) -> tuple[Path, Path]:
         "drive's odometry distance error (its drawn wheel scale - 1, per cent, median over the trials); "
         "calibrated_error_pct: what is left of it after the filter's online calibration at the trial's end "
         "(median of the absolute values; the odometry's own error where the calibration is off; – for rows "
-        "of earlier revisions).",
+        "of earlier revisions). fix_seconds_median, fix_driven_m_median: the first correct convergence's "
+        "compute in seconds from the trial's first frame through it, and the metres the car drove meanwhile "
+        "(medians over the trials that had one; – for rows of earlier revisions); startup_seconds_median: "
+        "the map opened, the filter built and its place priors loaded, before the first frame.",
         "",
     ]
     cols = [*by, "trials", "successes", "location_rmse_m", "yaw_rmse_deg", "frames_to_converge_median"]
@@ -779,6 +793,11 @@ def write_report(suite: str, rows: list[dict], out: Path) -> tuple[Path, Path]:
             "wrong_uncaught",
             "false_alarms",
         ]
+    if suite in ("sensors", "particles", "robustness", "runtime") and any(
+        a["fix_seconds_median"] is not None for a in agg
+    ):
+        at = cols.index("frames_to_converge_median") + 1
+        cols[at:at] = ["fix_seconds_median", "fix_driven_m_median"]
     if suite == "models":
         cols += ["location_rmse_mean_m", "location_rmse_std_m", "yaw_rmse_mean_deg", "yaw_rmse_std_deg"]
     if suite in ("sensors", "particles", "models", "kidnap") and any(
@@ -792,7 +811,7 @@ def write_report(suite: str, rows: list[dict], out: Path) -> tuple[Path, Path]:
     if suite == "kidnap":
         cols += ["relocalized_after_frames_median"]
     if suite == "runtime":
-        cols += ["seconds_before_median", "hz_after_median"]
+        cols += ["seconds_before_median", "hz_after_median", "startup_seconds_median"]
     lines.append("| " + " | ".join(cols) + " |")
     lines.append("|" + "---|" * len(cols))
     for a in agg:

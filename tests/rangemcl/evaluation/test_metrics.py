@@ -45,6 +45,35 @@ def test_a_wrong_convergence_caught_quickly_and_a_justified_alarm():
     assert m["wrong_convergences_uncaught"] == 0
 
 
+def test_the_first_correct_fix_costs_the_compute_and_the_distance_up_to_it():
+    """The wrong convergence at 12 is not a fix; the one at 30 is: the seconds of frames 0-30 (a wrong
+    convergence before it costs its time) and the 30 m driven along the true path, frames shifted by the
+    run's first frame; a run whose every convergence was wrong has no fix."""
+    from rangemcl.evaluation.metrics import first_correct_fix, shift_event_frames
+
+    est, truth = trajectory()
+    rng = np.random.default_rng(3)
+    seconds = rng.uniform(0.01, 2.0, len(est))
+    m = localization_metrics(
+        est, truth, 30, convergence_frames=[12, 30], recovery_frames=[25], seconds=seconds
+    )
+    assert m["first_fix_frame"] == 30
+    assert m["first_fix_seconds"] == pytest.approx(seconds[:31].sum())
+    assert m["first_fix_driven_m"] == pytest.approx(30.0)
+    shift_event_frames(m, 100)
+    assert m["first_fix_frame"] == 130 and m["converged_frame"] == 130
+    # a winding path: the distance is along it, not the chord
+    t = np.linspace(0, np.pi, 50)
+    arc = np.column_stack([10 * np.cos(t), 10 * np.sin(t), t])
+    fix = first_correct_fix(np.zeros(50), arc, [49], np.ones(50))
+    assert fix["first_fix_driven_m"] == pytest.approx(10 * np.pi, rel=1e-3) and fix["first_fix_seconds"] == 50
+    none = first_correct_fix(np.full(50, 60.0), arc, [10, 20], np.ones(50))
+    assert none == {"first_fix_frame": None, "first_fix_seconds": None, "first_fix_driven_m": None}
+    assert "first_fix_frame" not in localization_metrics(est, truth, 30)  # no seconds: not known
+    with pytest.raises(InputError, match="seconds: 3 values for 100 frames"):
+        localization_metrics(est, truth, 30, seconds=np.ones(3))
+
+
 def test_no_events_no_counts():
     est, truth = trajectory()
     m = localization_metrics(est[30:], truth[30:], 0)

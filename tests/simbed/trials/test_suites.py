@@ -158,6 +158,10 @@ def test_aggregate_weights_rmse_by_frames():
     assert a["not_converged"] == 1 and a["converged_failed"] == 1
     assert a["location_rmse_m"] == pytest.approx(((100 * 0.01 + 300 * 0.09) / 400) ** 0.5)
     assert a["frames_to_converge_median"] == 15 and a["seconds_before_median"] == 3
+    assert a["fix_seconds_median"] is None  # rows of earlier revisions: not known
+    rows[0]["fix_seconds"], rows[1]["fix_seconds"], rows[1]["fix_driven_m"] = "1.5", "4.5", "12"
+    (a,) = aggregate(rows, ["model"])  # rows[3] is rows[0]'s copy from before
+    assert a["fix_seconds_median"] == 3.0 and a["fix_driven_m_median"] == 12.0
 
 
 def test_suite_with_localizer_settings(tiny_map, tmp_path):
