@@ -66,6 +66,7 @@ from rangemcl.localization.place_prior import (
 )
 from rangemcl.localization.recovery import RecoveryMixin
 from rangemcl.localization.refine import ScanRefiner
+from rangemcl.localization.renderer import PLANAR_WITHIN_DEG, PLANAR_WITHIN_M
 from rangemcl.localization.scan_prep import ScanRays
 from rangemcl.localization.search import SearchMixin
 from rangemcl.localization.spread import DrivableArea, uniform_particles
@@ -163,6 +164,7 @@ class MonteCarloLocalizer(SearchMixin, RecoveryMixin):
         update_distance_m: float,
         update_angle_deg: float,
         level_with_imu: bool,
+        converged_rendering: str,
         # particles
         global_count: int,
         converged_count: int,
@@ -240,6 +242,7 @@ class MonteCarloLocalizer(SearchMixin, RecoveryMixin):
         self.update_distance_m = float(update_distance_m)
         self.update_angle = math.radians(update_angle_deg)
         self.level_with_imu = bool(level_with_imu)
+        self.converged_rendering = converged_rendering
         self.global_count = int(global_count)
         self.converged_count = int(converged_count)
         self.tracking_count = int(tracking_count)
@@ -645,13 +648,25 @@ class MonteCarloLocalizer(SearchMixin, RecoveryMixin):
         """Weigh the cloud with the scan (while searching, its heaviest hypotheses polished first) and
         estimate; then a converged filter's lost watch (lost: spread again, and nothing more), and the
         search's update or the tracking's resampling. Returns :class:`StepInfo` fields."""
-        loglik, bad = self.scorer.score(rays, self.particles, self.sensor_z(self.particles[:, :2]))
+        z = self.sensor_z(self.particles[:, :2])
+        about = self._planar_about()
+        if about is None:
+            loglik, bad = self.scorer.score(rays, self.particles, z)
+        else:
+            loglik, bad = self.scorer.score(rays, self.particles, z, about=about)
         self.log_w = self.log_w + loglik
         if not self.converged and self.convergence == "hypotheses" and self.polish_hypotheses > 0:
             loglik, bad = self._polish_hypotheses(rays, loglik, bad)
         best = float(bad.min())
         inl = self.scorer.last_inliers
         inliers = float(inl[np.argmax(loglik)]) if inl is not None and len(inl) else math.nan
+        if about is not None:  # the lost watch reads the best particle rendered exactly
+            j = int(np.argmax(loglik))
+            _ll, exact_bad = self.scorer.score(rays, self.particles[j : j + 1], z[j : j + 1])
+            best = float(exact_bad[0])
+            if inl is not None and self.scorer.last_inliers is not None:
+                inliers = float(self.scorer.last_inliers[0])
+            self.scorer.last_inliers = inl
         out = dict(
             updated=True,
             resampled=False,
@@ -676,6 +691,21 @@ class MonteCarloLocalizer(SearchMixin, RecoveryMixin):
         if self.converged:
             self.converged_updates += 1
         return out
+
+    def _planar_about(self) -> np.ndarray | None:
+        """The pose a converged cloud is rendered about (``observation.converged_rendering: planar``):
+        ``(x, y, yaw, sensor_z)`` of the estimate, when every particle lies within
+        :data:`~rangemcl.localization.renderer.PLANAR_WITHIN_M` and ``PLANAR_WITHIN_DEG`` of it; else None
+        (rendered exactly)."""
+        if not self.converged or self.converged_rendering != "planar" or not len(self.particles):
+            return None
+        est = self.last_estimate
+        p = self.particles
+        if float(np.max(np.hypot(p[:, 0] - est[0], p[:, 1] - est[1]))) > PLANAR_WITHIN_M:
+            return None
+        if float(np.max(np.abs(wrap_angle(p[:, 2] - est[2])))) > math.radians(PLANAR_WITHIN_DEG):
+            return None
+        return np.array([est[0], est[1], est[2], float(self.sensor_z(est[None, :2])[0])])
 
     def sensor_z(self, xy: np.ndarray) -> np.ndarray:
         """The sensor's world z over each ``(x, y)``: the map's ground there plus the mounting height."""

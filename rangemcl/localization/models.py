@@ -46,7 +46,11 @@ class ScoringModel:
     last_inliers: np.ndarray | None = None
     inlier_m = 0.3
 
-    def score(self, rays, particles: np.ndarray, sensor_z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def score(
+        self, rays, particles: np.ndarray, sensor_z: np.ndarray, about=None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``about`` ``(x, y, yaw, sensor_z)``: particles close around this pose may be rendered about it
+        (:meth:`ParticleRenderer.planar_scores`); models that cast no rays ignore it."""
         raise NotImplementedError
 
 
@@ -80,11 +84,11 @@ class RangeModel(ScoringModel):
         d = np.asarray(mean_residuals, np.float64)
         return -0.5 * d * d / self.sigma**2
 
-    def score(self, rays, particles, sensor_z):
+    def score(self, rays, particles, sensor_z, about=None):
         self.kernel.set_scan(
             rays.directions, rays.ranges, structure=rays.structure, change_top_z=self.change_top_z(rays)
         )
-        out = self.kernel.scores(particles, sensor_z, agree_m=self.inlier_m)
+        out = self.kernel.scores(particles, sensor_z, agree_m=self.inlier_m, about=about)
         self.last_inliers = inlier_share(out)
         d = out["mean"].astype(np.float64)
         return self.log_likelihood(d), d
@@ -99,9 +103,9 @@ class OverlapModel(ScoringModel):
         self.tau = float(tau_m)
         self.sigma = float(sigma)
 
-    def score(self, rays, particles, sensor_z):
+    def score(self, rays, particles, sensor_z, about=None):
         self.kernel.set_scan(rays.directions, rays.ranges, structure=rays.structure)
-        out = self.kernel.scores(particles, sensor_z, agree_m=self.tau)
+        out = self.kernel.scores(particles, sensor_z, agree_m=self.tau, about=about)
         self.last_inliers = inlier_share(out)
         a = out["agree"].astype(np.float64)
         bad = 1.0 - a
@@ -118,9 +122,11 @@ class HistogramModel(ScoringModel):
         self.top = float(top_m)
         self.sigma = float(sigma)
 
-    def score(self, rays, particles, sensor_z):
+    def score(self, rays, particles, sensor_z, about=None):
         self.kernel.set_scan(rays.directions, rays.ranges)
-        rendered = self.kernel.scores(particles, sensor_z, hist_bins=self.bins, hist_top_m=self.top)["hist"]
+        rendered = self.kernel.scores(
+            particles, sensor_z, hist_bins=self.bins, hist_top_m=self.top, about=about
+        )["hist"]
         measured, _ = np.histogram(rays.ranges, bins=self.bins, range=(0.0, self.top))
         w = wasserstein_1d(rendered.astype(np.float64), measured.astype(np.float64)[None, :])
         return -0.5 * (w / self.sigma) ** 2, w
@@ -162,7 +168,7 @@ class LikelihoodFieldModel(ScoringModel):
         self.voxels = 0 if centres is None else len(centres)
         self.tree = None if centres is None else cKDTree(centres)
 
-    def score(self, rays, particles, sensor_z, chunk: int = 1000):
+    def score(self, rays, particles, sensor_z, about=None, chunk: int = 1000):
         ends_local = rays.directions * rays.ranges[:, None]  # (R, 3) levelled sensor frame
         n = len(particles)
         loglik = np.empty(n)
@@ -278,7 +284,7 @@ class TiledLikelihoodFieldModel(LikelihoodFieldModel):
                 f"{(self.nbytes + need + others) / 1e6 * 1.2:.0f} MB"
             )
 
-    def score(self, rays, particles, sensor_z, chunk: int = 1000):
+    def score(self, rays, particles, sensor_z, about=None, chunk: int = 1000):
         self.sync()
         return super().score(rays, particles, sensor_z, chunk)
 

@@ -191,6 +191,13 @@ class ObservationSettings:
     has a surface within `cap_m` of its measured point: the scan saw past an object gone since the mapping
     drive to what the map holds behind it. Otherwise it passed through the map into nothing the map
     knows, which a removed object does not explain, and costs `cap_m`. One more ray cast per such ray."""
+    converged_rendering: str = "exact"
+    """How a converged filter's particles are rendered: `exact` (every particle's rays cast through the
+    map) or `planar` (the rays cast once, from the estimate; each particle's rendered range is where its
+    own ray meets the plane of the surface the estimate's ray met). A converged cloud lies within
+    decimetres of its estimate, where almost every ray meets the same surface, so `planar` ranks the
+    particles nearly as `exact` does for the cost of one particle's rays; a cloud spread wider than 1 m or
+    3 degrees from its estimate is rendered exactly. The searching filter always renders exactly."""
     min_range_m: float = 2.0
     """Returns closer than this, in m, are ignored (the car itself)."""
     max_range_m: float = 40.0
@@ -549,6 +556,7 @@ class LocalizerSettings:
         choices = {
             "observation.model": MODEL_NAMES,
             "observation.ray_sampling": RAY_SAMPLINGS,
+            "observation.converged_rendering": ("exact", "planar"),
             "motion.calibration": ("estimator", "particles"),
             "convergence.method": ("hypotheses", "tiles"),
             "recovery.signal": ("inliers", "residual"),

@@ -112,7 +112,11 @@ def test_global_localization_converges_on_a_tiny_town(world):
     assert not any(i.recovered for i in infos)
 
 
-def test_tracking_follows_and_recovers_after_a_teleport(world):
+@pytest.mark.parametrize("rendering", ["exact", "planar"])
+def test_tracking_follows_and_recovers_after_a_teleport(world, rendering):
+    """Tracking, then a teleport the odometry does not see: caught and relocalized; with the converged
+    cloud rendered exactly, and with the planar rendering about its estimate (the lost watch still reads
+    the best particle rendered exactly)."""
     town, caster, m, path, geo = world
     jump = 40  # from this frame on the car is elsewhere, but its odometry says it just drove on
     offset = np.array([0.0, 0.0, 0.0])
@@ -122,22 +126,25 @@ def test_tracking_follows_and_recovers_after_a_teleport(world):
     def truth_at(k):
         return path[k] if k < jump else other[k - jump] + offset
 
-    s = small_settings()
+    s = small_settings(converged_rendering=rendering)
     loc = build_localizer(m, s, seed=3, caster=caster)
     loc.start_at(path[0])
     assert loc.converged and len(loc.particles) == s.particles.tracking_count
     rng = np.random.default_rng(4)
-    est, infos = [], []
+    est, infos, planar = [], [], []
     for k in range(frames):
         a, b = (path[k - 1], path[k]) if k < jump else (other[max(k - jump - 1, 0)], other[k - jump])
         delta = (se2_between(a, b) if k else np.zeros(3)) + rng.normal(0, [0.01, 0.005, 0.002]) * (k > 0)
         if k == jump:  # the odometry sees an ordinary step, not the teleport
             delta = se2_between(path[k - 1], path[k])
+        planar.append(loc._planar_about() is not None)  # what the step after the motion will see
         info = loc.step(delta, scan_at(town, caster, geo, truth_at(k)))
         est.append(info.estimate)
         infos.append(info)
     est = np.array(est)
     truth = np.array([truth_at(k) for k in range(frames)])
+    # the start's spread (0.5 m) is rendered exactly; the tracked cloud, compact, planar (when asked)
+    assert not planar[0] and any(planar[5:jump]) == (rendering == "planar")
     loc_err, _ = errors(est, truth)
     assert loc_err[:jump].max() < 0.5  # tracking
     assert loc_err[jump] > 20  # kidnapped

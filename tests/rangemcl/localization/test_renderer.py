@@ -251,3 +251,68 @@ def test_rays_seen_past_removed_cars_cost_alike_and_rays_through_the_map_into_no
     assert d[True][0] == pytest.approx(d[False][0], abs=1e-4)
     assert (d[True][1:] > d[False][1:] + 0.01).all(), d
     assert d[True][0] < d[True][1:].min()
+
+
+@pytest.mark.parametrize(
+    "cap, beyond, short, top, explain",
+    [
+        (np.inf, None, None, None, False),
+        (1.0, 0.5, 0.3, None, False),
+        (1.0, 0.5, 0.3, 0.5, True),
+    ],
+)
+def test_planar_rendering_is_exact_where_every_ray_meets_one_plane(cap, beyond, short, top, explain):
+    """A slanted wall of two triangles, 2 km wide: every ray of every particle within a metre and three
+    degrees of the reference meets the same plane, so the planar rendering (each particle's ray met with
+    the plane the reference's ray met) must give the exact rendering's scores, histogram included;
+    measured ranges scattered around the wall's, some far beyond it and some far short of it."""
+    caster = RayCaster(threads=2)
+    n = np.array([-1.0, 0.3, 0.2]) / np.linalg.norm([-1.0, 0.3, 0.2])
+    u = np.cross(n, [0.0, 0.0, 1.0])
+    u /= np.linalg.norm(u)
+    w = np.cross(n, u)
+    centre = np.array([25.0, 0.0, 0.0])
+    corners = [centre + 1000.0 * (a * u + b * w) for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+    caster.add_mesh(np.array(corners), np.array([[0, 1, 2], [0, 2, 3]]), name="wall")
+    rng = np.random.default_rng(7)
+    ref = np.array([0.0, 0.0, 0.2])
+    z = 1.7
+    az = rng.uniform(-0.7, 0.7, 300)
+    el = rng.uniform(-0.3, 0.4, 300)
+    dirs = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    c, s = np.cos(ref[2]), np.sin(ref[2])
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    t = caster.cast(np.array([0.0, 0.0, z]), dirs @ R.T, 500.0).ranges
+    assert np.isfinite(t).all()
+    measured = t + rng.normal(0, 0.2, len(t))
+    measured[::7] += 1.8  # seen past something gone
+    measured[3::7] -= 1.8  # met something the map lacks
+    renderer = ParticleRenderer(
+        caster, margin_m=2.0, cap_m=cap, cap_beyond_m=beyond, cap_short_m=short, explain_beyond=explain
+    )
+    renderer.set_scan(dirs, measured, structure=rng.random(len(t)) < 0.7, change_top_z=top)
+    particles = ref + rng.uniform([-1.0, -1.0, -0.05], [1.0, 1.0, 0.05], (50, 3))
+    zs = z + rng.uniform(-0.1, 0.1, 50)
+    exact = renderer.scores(particles, zs, hist_bins=12, hist_top_m=60.0)
+    planar = renderer.scores(particles, zs, hist_bins=12, hist_top_m=60.0, about=(*ref, z))
+    for key in ("mean", "agree", "beyond", "structure"):
+        np.testing.assert_allclose(planar[key], exact[key], atol=2e-4, err_msg=key)
+    np.testing.assert_array_equal(planar["hist"], exact["hist"])
+    assert exact["mean"].std() > 0.05  # the particles do differ
+
+
+def test_planar_rendering_ranks_a_compact_cloud_as_the_exact_one(scene):
+    """In a town, a cloud within decimetres of the reference: the planar rendering gives the reference
+    its exact scores and ranks the cloud nearly as the exact rendering does."""
+    caster, true, z, dirs, measured = scene
+    rng = np.random.default_rng(3)
+    renderer = ParticleRenderer(caster, margin_m=2.0, cap_m=1.0, cap_beyond_m=0.5)
+    renderer.set_scan(dirs, measured)
+    cloud = np.vstack([true, true + rng.normal(0, [0.15, 0.15, 0.005], (80, 3))])
+    zs = np.full(len(cloud), z)
+    exact = renderer.scores(cloud, zs)
+    planar = renderer.scores(cloud, zs, about=(*true, z))
+    assert planar["mean"][0] == pytest.approx(exact["mean"][0], abs=1e-4)
+    assert planar["agree"][0] == pytest.approx(exact["agree"][0], abs=1e-6)
+    assert np.corrcoef(planar["mean"], exact["mean"])[0, 1] > 0.9
+    assert np.argmin(planar["mean"]) == np.argmin(exact["mean"]) == 0
