@@ -9,7 +9,9 @@ Embree ``RaycastingScene`` in the same run as the peer.
 * after convergence: pose tracking from the first true pose with ``--few`` particles (default 100) over
   ``--frames`` frames; per frame the whole step (scan read, de-skew, motion, weighting, resampling, the
   scan-to-mesh refinement and the odometry calibration) is timed; the median gives the frame rate; the
-  refinement alone is timed on every 10th frame.
+  weighting and the refinement alone are timed on every 10th frame. Once per converged rendering
+  (``--converged-rendering``, default ``exact,planar``: every particle's rays cast, or the cloud rendered
+  about its estimate), from the same start and seed, so their ratio and their tracking errors compare.
 * before convergence: ``--many`` particles (default 10,000) spread over the map, weighted on ``--global-
   frames`` frames; median seconds per update (the first update of a search: the place prior's match of
   the scan, the prior's particles, the weighting and the hypothesis bookkeeping).
@@ -67,6 +69,11 @@ def main() -> None:
     ap.add_argument("--search-frames", type=int, default=80)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--converged-rendering",
+        default="exact,planar",
+        help="observation.converged_rendering values whose tracking is measured, comma-separated",
+    )
     ap.add_argument("--json", help="also write the figures here")
     ap.add_argument(
         "--beam-deg", type=float, default=-1.57, help="the beam prior's beam (default: the MQ-8's top)"
@@ -96,49 +103,80 @@ def main() -> None:
     loc = build_localizer(mesh_map, settings, rng=rng, device=args.device, sensor_height_m=1.73)
     n_frames = min(args.frames, len(seq))
 
-    # --- after convergence: whole steps with few particles ----------------------------------------------
-    loc.start_at(truth[0], args.few)
-    step_s, weigh_warp, weigh_embree, errors, refine_s = [], [], [], [], []
-    for i in range(n_frames):
-        t0 = time.perf_counter()
-        delta = se2_between(odo[i - 1], odo[i]) if i else np.zeros(3)
-        pts = seq.scan(i)
-        fire = seq.point_meta(i).get("time_s")
-        rp = tuple(seq.imu_roll_pitch[i]) if seq.imu_roll_pitch is not None else None
-        info = loc.step(delta, pts, fire_time_s=fire, frame_period_s=period, roll_pitch=rp)
-        step_s.append(time.perf_counter() - t0)
-        errors.append(float(np.hypot(*(info.estimate[:2] - truth[i, :2]))))
-        if i % 10 == 5:  # the weighting alone, Warp and Embree on the same rays and particles
-            rays = prepare_rays(
-                pts, o, rng, fire_time_s=fire, frame_period_s=period, frame_motion=delta, roll_pitch=rp
-            )
-            z = loc.sensor_z(loc.particles[:, :2])
-            t1 = time.perf_counter()
-            dw = loc.residuals(rays)
-            t2 = time.perf_counter()
-            de = embree_residuals(scene, o3d, loc.particles, z, rays, o.margin_m, loc.model.ray_costs)
-            t3 = time.perf_counter()
-            weigh_warp.append(t2 - t1)
-            weigh_embree.append(t3 - t2)
-            if loc.refiner is not None:  # the scan-to-mesh refinement alone (its result not applied)
-                est = loc.last_estimate
-                t4 = time.perf_counter()
-                loc.refiner.refine(rays.directions, rays.ranges, est, float(loc.sensor_z(est[None, :2])[0]))
-                refine_s.append(time.perf_counter() - t4)
-            assert np.allclose(dw, de, atol=2e-3), float(np.abs(dw - de).max())
-    after = {
-        "particles": args.few,
-        "frames": n_frames,
-        "step_median_s": statistics.median(step_s[5:]),
-        "hz": 1.0 / statistics.median(step_s[5:]),
-        "weighting_median_s_warp": statistics.median(weigh_warp),
-        "weighting_median_s_embree": statistics.median(weigh_embree),
-        "embree_over_warp": statistics.median(weigh_embree) / statistics.median(weigh_warp),
-        "tracking_error_median_m": statistics.median(errors),
-        "refine_median_s": statistics.median(refine_s) if refine_s else None,
-        "refinements": loc.refinements,
-        "refused_refinements": loc.refused_refinements,
-    }
+    # --- after convergence: whole steps with few particles, each converged rendering ---------------------
+    def tracking(rendering: str) -> dict:
+        s = LocalizerSettings()
+        s.observation.converged_rendering = rendering
+        loc = build_localizer(
+            mesh_map, s, rng=np.random.default_rng(args.seed), device=args.device, sensor_height_m=1.73
+        )
+        return after_convergence(loc, rendering)
+
+    def after_convergence(loc, rendering: str) -> dict:
+        loc.start_at(truth[0], args.few)
+        rays_rng = np.random.default_rng(args.seed + 1)  # the same rays for every rendering
+        step_s, weigh_warp, weigh_embree, errors, refine_s = [], [], [], [], []
+        for i in range(n_frames):
+            t0 = time.perf_counter()
+            delta = se2_between(odo[i - 1], odo[i]) if i else np.zeros(3)
+            pts = seq.scan(i)
+            fire = seq.point_meta(i).get("time_s")
+            rp = tuple(seq.imu_roll_pitch[i]) if seq.imu_roll_pitch is not None else None
+            info = loc.step(delta, pts, fire_time_s=fire, frame_period_s=period, roll_pitch=rp)
+            step_s.append(time.perf_counter() - t0)
+            errors.append(float(np.hypot(*(info.estimate[:2] - truth[i, :2]))))
+            if i % 10 == 5:  # the weighting alone, Warp and Embree on the same rays and particles
+                rays = prepare_rays(
+                    pts,
+                    o,
+                    rays_rng,
+                    fire_time_s=fire,
+                    frame_period_s=period,
+                    frame_motion=delta,
+                    roll_pitch=rp,
+                )
+                rays.sensor_height_m = loc.sensor_height_m
+                z = loc.sensor_z(loc.particles[:, :2])
+                about = loc._planar_about()  # the filter's own weighting: planar about the estimate, or exact
+                t1 = time.perf_counter()
+                if about is None:
+                    loc.scorer.score(rays, loc.particles, z)
+                else:  # and the best particle rendered exactly for the lost watch
+                    loc.scorer.score(rays, loc.particles, z, about=about)
+                    loc.scorer.score(rays, loc.particles[:1], z[:1])
+                t2 = time.perf_counter()
+                de = embree_residuals(scene, o3d, loc.particles, z, rays, o.margin_m, loc.model.ray_costs)
+                t3 = time.perf_counter()
+                weigh_warp.append(t2 - t1)
+                weigh_embree.append(t3 - t2)
+                dw = loc.residuals(rays)  # exact: Warp and Embree cast the same rays to the same ranges
+                if loc.refiner is not None:  # the scan-to-mesh refinement alone (its result not applied)
+                    est = loc.last_estimate
+                    t4 = time.perf_counter()
+                    loc.refiner.refine(
+                        rays.directions, rays.ranges, est, float(loc.sensor_z(est[None, :2])[0])
+                    )
+                    refine_s.append(time.perf_counter() - t4)
+                assert np.allclose(dw, de, atol=2e-3), float(np.abs(dw - de).max())
+        return {
+            "rendering": rendering,
+            "particles": args.few,
+            "frames": n_frames,
+            "step_median_s": statistics.median(step_s[5:]),
+            "hz": 1.0 / statistics.median(step_s[5:]),
+            "weighting_median_s_warp": statistics.median(weigh_warp),
+            "weighting_median_s_embree": statistics.median(weigh_embree),
+            "embree_over_warp": statistics.median(weigh_embree) / statistics.median(weigh_warp),
+            "tracking_error_median_m": statistics.median(errors),
+            "tracking_error_p95_m": float(np.quantile(errors, 0.95)),
+            "refine_median_s": statistics.median(refine_s) if refine_s else None,
+            "refinements": loc.refinements,
+            "refused_refinements": loc.refused_refinements,
+        }
+
+    renderings = [m.strip() for m in args.converged_rendering.split(",") if m.strip()]
+    tracked = {m: tracking(m) for m in renderings}
+    after = tracked[renderings[0]]
 
     # --- before convergence: updates with many particles ------------------------------------------------
     gw, ge = [], []
@@ -244,6 +282,7 @@ def main() -> None:
         "rays_per_particle": o.rays,
         "map_triangles": mesh_map.n_triangles,
         "after_convergence": after,
+        "after_convergence_by_rendering": tracked,
         "before_convergence": before,
         "global_search": search,
         "place_prior": prior_fig,
@@ -252,18 +291,28 @@ def main() -> None:
         f"device {out['device']}, {out['cores']} cores, {o.rays} rays per particle, "
         f"map {mesh_map.n_triangles:,} triangles"
     )
-    print(
-        f"after convergence ({args.few} particles, whole step): {after['hz']:.1f} Hz "
-        f"(median {1000 * after['step_median_s']:.1f} ms; target >= 20 Hz; paper 21.8 Hz on a GTX 1080 Ti); "
-        f"weighting Warp {1000 * after['weighting_median_s_warp']:.1f} ms vs Embree "
-        f"{1000 * after['weighting_median_s_embree']:.1f} ms (Embree/Warp {after['embree_over_warp']:.2f}); "
-        f"tracking error median {after['tracking_error_median_m']:.3f} m"
-    )
-    if after["refine_median_s"] is not None:
+    for a in tracked.values():
         print(
-            f"  of which the scan-to-mesh refinement {1000 * after['refine_median_s']:.1f} ms per update "
-            f"({after['refinements']} taken, {after['refused_refinements']} refused)"
+            f"after convergence ({args.few} particles, whole step, {a['rendering']} rendering): "
+            f"{a['hz']:.1f} Hz (median {1000 * a['step_median_s']:.1f} ms; target >= 100 Hz); "
+            f"weighting Warp {1000 * a['weighting_median_s_warp']:.1f} ms vs Embree's exact "
+            f"{1000 * a['weighting_median_s_embree']:.1f} ms (Embree/Warp {a['embree_over_warp']:.2f}); "
+            f"tracking error median {a['tracking_error_median_m']:.4f} m, 95th percentile "
+            f"{a['tracking_error_p95_m']:.4f} m"
         )
+        if a["refine_median_s"] is not None:
+            print(
+                f"  of which the scan-to-mesh refinement {1000 * a['refine_median_s']:.1f} ms per update "
+                f"({a['refinements']} taken, {a['refused_refinements']} refused)"
+            )
+    if len(tracked) > 1:
+        first, *others = tracked.values()
+        for a in others:
+            print(
+                f"  {a['rendering']} against {first['rendering']}, same run: step "
+                f"{first['step_median_s'] / a['step_median_s']:.2f}x faster, weighting "
+                f"{first['weighting_median_s_warp'] / a['weighting_median_s_warp']:.2f}x"
+            )
     print(
         f"before convergence ({args.many:,} particles): {before['update_median_s_warp']:.2f} s per frame "
         f"(target <= 3 s; paper <= 56.7 s on a GTX 1080 Ti); Embree weighting "

@@ -74,12 +74,10 @@ def _band_weights(
         t = tall_share if has[0] and has[1] else float(has[0])  # a structure part alone takes its share
         g = ground_share if has[2] and (has[0] or has[1]) else float(has[2])  # ... and the road alike
         share = np.array([(1.0 - g) * t, (1.0 - g) * (1.0 - t), g])  # sums to 1 over the parts present
-    _, inverse, counts = np.unique(key * 3 + part, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
-    group_part = np.zeros(len(counts), np.int64)
-    group_part[inverse] = part
-    groups_in_part = np.bincount(group_part, minlength=3)
-    weight = share[part] / np.maximum(groups_in_part[part], 1) / counts[inverse]
+    group = (key - key.min()) * 3 + part  # (band, part) groups: a small range of integers, counted directly
+    counts = np.bincount(group)
+    groups_in_part = np.bincount(np.flatnonzero(counts) % 3, minlength=3)
+    weight = share[part] / np.maximum(groups_in_part[part], 1) / counts[group]
     return weight / weight.sum()
 
 
