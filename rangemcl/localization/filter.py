@@ -64,6 +64,7 @@ from rangemcl.localization.place_prior import (
     scan_profile,
     top_beam_deg,
 )
+from rangemcl.localization.prior_search import PRIOR_SEARCH_WINDOW, PriorSearchMixin
 from rangemcl.localization.recovery import RecoveryMixin
 from rangemcl.localization.refine import ScanRefiner
 from rangemcl.localization.renderer import PLANAR_WITHIN_DEG, PLANAR_WITHIN_M
@@ -115,7 +116,7 @@ class StepInfo:
     map_load_ms: float = math.nan  # ... milliseconds this update waited for tiles to load
 
 
-class MonteCarloLocalizer(SearchMixin, RecoveryMixin):
+class MonteCarloLocalizer(SearchMixin, PriorSearchMixin, RecoveryMixin):
     """Particle filter over ``(x, y, yaw)`` in a map (module docstring): the search
     (:class:`~rangemcl.localization.search.SearchMixin`) and the lost watch
     (:class:`~rangemcl.localization.recovery.RecoveryMixin`) are mixed in, the converged tracking is
@@ -212,8 +213,8 @@ class MonteCarloLocalizer(SearchMixin, RecoveryMixin):
         challenge_places: int,
         challenge_updates: int,
     ):
-        if convergence not in ("hypotheses", "tiles"):
-            raise InputError(f"convergence {convergence!r}: expected 'hypotheses' or 'tiles'")
+        if convergence not in ("hypotheses", "tiles", "prior"):
+            raise InputError(f"convergence {convergence!r}: expected 'hypotheses', 'tiles' or 'prior'")
         self.map = mesh_map
         self.scorer = scorer
         self.caster = caster
@@ -311,12 +312,20 @@ class MonteCarloLocalizer(SearchMixin, RecoveryMixin):
         # the search's challenge to its leader compares places over the same store's last challenge_updates
         history = lost.history_updates + 1 + lost.max_vetoed_updates if lost is not None else 0
         challenge = self.challenge_updates + 1 if self.challenge_places > 0 and self.challenge_top > 0 else 0
+        if convergence == "prior":  # a newborn hypothesis is judged over the recent scans
+            challenge = max(challenge, PRIOR_SEARCH_WINDOW + 1)
         self._recent: deque | None = None
         if (lost is not None and lost.history_updates > 0) or challenge > 0:
             self._recent = deque(maxlen=max(history, challenge))
         self._since_spread = 0  # updates since the last spread: the window of the search's challenge
         self._challenges_left = 0  # probation updates left in which the converged pose is challenged
         self.hypotheses: list = []  # the search's clusters at the last update, largest share first
+        # the prior search (convergence "prior"): its hypotheses start at the spread's first update, each
+        # with an id (the leader's tells the test whether it kept the lead)
+        self._prior_search_fresh = False
+        self._hyp_ids = np.zeros(0, np.int64)
+        self._next_hyp_id = 0
+        self._leader_id = -1
 
     # --- the tracking's state, as the filter's (read by the run's summary and the tools) ------------------
 
@@ -446,7 +455,8 @@ class MonteCarloLocalizer(SearchMixin, RecoveryMixin):
         self._since_spread = 0
         self._challenges_left = 0
         self.tracking.stop()
-        self._prior_pending = self.use_prior
+        self._prior_search_fresh = self.convergence == "prior"  # its hypotheses start at the first update
+        self._prior_pending = self.use_prior and self.convergence != "prior"
         if self._prior_pending:
             self.place_prior()
         self.convergence_test.reset()
@@ -539,7 +549,7 @@ class MonteCarloLocalizer(SearchMixin, RecoveryMixin):
         """One LiDAR frame: ``odometry_delta`` ``(dx, dy, dyaw)`` is the car's motion since the previous
         frame in the previous frame's pose, over ``dt_s`` seconds (needed to calibrate the gyro's bias);
         ``points`` the scan ``(M, 3)`` in the sensor frame (None or empty: predict only)."""
-        if len(self.particles) == 0:
+        if len(self.particles) == 0 and not (self.convergence == "prior" and not self.converged):
             raise InputError("the filter has no particles: call spread() or start_at() first")
         t0 = time.perf_counter()
         delta = np.asarray(odometry_delta, np.float64).reshape(3)
@@ -648,6 +658,8 @@ class MonteCarloLocalizer(SearchMixin, RecoveryMixin):
         """Weigh the cloud with the scan (while searching, its heaviest hypotheses polished first) and
         estimate; then a converged filter's lost watch (lost: spread again, and nothing more), and the
         search's update or the tracking's resampling. Returns :class:`StepInfo` fields."""
+        if not self.converged and self.convergence == "prior":
+            return self._prior_weigh(rays, levelled)
         z = self.sensor_z(self.particles[:, :2])
         about = self._planar_about()
         if about is None:
@@ -688,6 +700,24 @@ class MonteCarloLocalizer(SearchMixin, RecoveryMixin):
             self.particles = self.tracking.resample(self.particles, w, self.rng, n)
             self.log_w = np.zeros(n)
             out["resampled"] = True
+        if self.converged:
+            self.converged_updates += 1
+        return out
+
+    def _prior_weigh(self, rays: ScanRays, levelled: np.ndarray | None) -> dict:
+        """A searching update of the prior search (:mod:`rangemcl.localization.prior_search`)."""
+        if self._prior_search_fresh:  # the spread's cloud gives way to the prior's places
+            self._prior_search_reset()
+            self._prior_search_fresh = False
+        out = dict(
+            updated=True,
+            resampled=False,
+            best_residual_m=math.nan,
+            skipped_scan=False,
+            recovered=False,
+            inliers=math.nan,
+        )
+        out.update(self._prior_search_update(rays, levelled))
         if self.converged:
             self.converged_updates += 1
         return out

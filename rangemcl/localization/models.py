@@ -47,10 +47,11 @@ class ScoringModel:
     inlier_m = 0.3
 
     def score(
-        self, rays, particles: np.ndarray, sensor_z: np.ndarray, about=None
+        self, rays, particles: np.ndarray, sensor_z: np.ndarray, about=None, about_of=None
     ) -> tuple[np.ndarray, np.ndarray]:
-        """``about`` ``(x, y, yaw, sensor_z)``: particles close around this pose may be rendered about it
-        (:meth:`ParticleRenderer.planar_scores`); models that cast no rays ignore it."""
+        """``about`` ``(x, y, yaw, sensor_z)`` (or ``(K, 4)`` with ``about_of``, each particle's): particles
+        close around this pose may be rendered about it (:meth:`ParticleRenderer.planar_scores`); models
+        that cast no rays ignore it."""
         raise NotImplementedError
 
 
@@ -84,11 +85,11 @@ class RangeModel(ScoringModel):
         d = np.asarray(mean_residuals, np.float64)
         return -0.5 * d * d / self.sigma**2
 
-    def score(self, rays, particles, sensor_z, about=None):
+    def score(self, rays, particles, sensor_z, about=None, about_of=None):
         self.kernel.set_scan(
             rays.directions, rays.ranges, structure=rays.structure, change_top_z=self.change_top_z(rays)
         )
-        out = self.kernel.scores(particles, sensor_z, agree_m=self.inlier_m, about=about)
+        out = self.kernel.scores(particles, sensor_z, agree_m=self.inlier_m, about=about, about_of=about_of)
         self.last_inliers = inlier_share(out)
         d = out["mean"].astype(np.float64)
         return self.log_likelihood(d), d
@@ -103,9 +104,9 @@ class OverlapModel(ScoringModel):
         self.tau = float(tau_m)
         self.sigma = float(sigma)
 
-    def score(self, rays, particles, sensor_z, about=None):
+    def score(self, rays, particles, sensor_z, about=None, about_of=None):
         self.kernel.set_scan(rays.directions, rays.ranges, structure=rays.structure)
-        out = self.kernel.scores(particles, sensor_z, agree_m=self.tau, about=about)
+        out = self.kernel.scores(particles, sensor_z, agree_m=self.tau, about=about, about_of=about_of)
         self.last_inliers = inlier_share(out)
         a = out["agree"].astype(np.float64)
         bad = 1.0 - a
@@ -122,10 +123,10 @@ class HistogramModel(ScoringModel):
         self.top = float(top_m)
         self.sigma = float(sigma)
 
-    def score(self, rays, particles, sensor_z, about=None):
+    def score(self, rays, particles, sensor_z, about=None, about_of=None):
         self.kernel.set_scan(rays.directions, rays.ranges)
         rendered = self.kernel.scores(
-            particles, sensor_z, hist_bins=self.bins, hist_top_m=self.top, about=about
+            particles, sensor_z, hist_bins=self.bins, hist_top_m=self.top, about=about, about_of=about_of
         )["hist"]
         measured, _ = np.histogram(rays.ranges, bins=self.bins, range=(0.0, self.top))
         w = wasserstein_1d(rendered.astype(np.float64), measured.astype(np.float64)[None, :])
@@ -168,7 +169,7 @@ class LikelihoodFieldModel(ScoringModel):
         self.voxels = 0 if centres is None else len(centres)
         self.tree = None if centres is None else cKDTree(centres)
 
-    def score(self, rays, particles, sensor_z, about=None, chunk: int = 1000):
+    def score(self, rays, particles, sensor_z, about=None, about_of=None, chunk: int = 1000):
         ends_local = rays.directions * rays.ranges[:, None]  # (R, 3) levelled sensor frame
         n = len(particles)
         loglik = np.empty(n)
@@ -284,7 +285,7 @@ class TiledLikelihoodFieldModel(LikelihoodFieldModel):
                 f"{(self.nbytes + need + others) / 1e6 * 1.2:.0f} MB"
             )
 
-    def score(self, rays, particles, sensor_z, about=None, chunk: int = 1000):
+    def score(self, rays, particles, sensor_z, about=None, about_of=None, chunk: int = 1000):
         self.sync()
         return super().score(rays, particles, sensor_z, chunk)
 

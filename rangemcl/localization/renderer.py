@@ -41,6 +41,7 @@ from rangemcl.raycast import RayCaster, closest_hit
 PLANAR_REACH_M = 1.0
 # ... and looks for a surface behind the one it met from this far past it (m), for explain_beyond
 PLANAR_BEHIND_M = 0.05
+PLANAR_CHUNK = 50  # particles per chunk of the planar kernel on the CPU threads (no ray is cast: cheap)
 # the filter renders a converged cloud planar only while every particle lies this close to its estimate
 # (m, degrees): the rankings of exact and planar rendering agree closely there (correlation 0.97-0.99 of
 # the mean residuals for clouds of 0.05-0.4 m and 0.1-0.8 degrees on the demo drive)
@@ -235,7 +236,8 @@ def planar_residual_kernel(
     origins: wp.array[wp.vec3],
     measured: wp.array[float],
     structure: wp.array[float],
-    ref_points: wp.array[wp.vec3],  # where each ray cast from the reference pose met the map (world)
+    ref_of: wp.array[wp.int32],  # each particle's reference pose
+    ref_points: wp.array[wp.vec3],  # (references x rays): where each ray cast from the reference met the map
     ref_normals: wp.array[wp.vec3],  # ... the normal of the surface there (world)
     ref_hit: wp.array[wp.int32],  # ... 1 where it met something
     ref_behind: wp.array[wp.int32],  # ... 1 where the map has a surface within cap of the measured point
@@ -269,7 +271,9 @@ def planar_residual_kernel(
     s_far = float(0.0)
     s_gone = float(0.0)
     bins = out_hist.shape[1]
-    for i in range(directions.shape[0]):
+    n_rays = directions.shape[0]
+    first = ref_of[k] * n_rays
+    for i in range(n_rays):
         d = directions[i]
         o = origins[i]
         dw = wp.vec3(c * d[0] - s * d[1], s * d[0] + c * d[1], d[2])
@@ -277,11 +281,12 @@ def planar_residual_kernel(
         limit = measured[i] + margin
         t = limit
         hit = int(0)
-        if ref_hit[i] != 0:
-            nrm = ref_normals[i]
+        j = first + i
+        if ref_hit[j] != 0:
+            nrm = ref_normals[j]
             den = wp.dot(nrm, dw)
             if wp.abs(den) > 1.0e-6:
-                tt = wp.dot(nrm, ref_points[i] - ow) / den
+                tt = wp.dot(nrm, ref_points[j] - ow) / den
                 if tt > 0.0 and tt < limit:
                     t = tt
                     hit = 1
@@ -298,7 +303,7 @@ def planar_residual_kernel(
             cap_short,
             change_top,
             explain_beyond,
-            ref_behind[i],
+            ref_behind[j],
             tau,
         )
         if hit != 0 and bins > 0 and t < hist_top:
@@ -445,6 +450,7 @@ class ParticleRenderer:
         hist_bins: int = 0,
         hist_top_m: float = 100.0,
         about=None,
+        about_of=None,
     ):
         """Per particle, from one pass over its rays: ``mean`` (``d`` of Eq. 5), ``agree`` (the share of
         rays whose residual is below ``agree_m``), ``beyond`` (the share measured more than ``agree_m``
@@ -453,8 +459,9 @@ class ParticleRenderer:
         with ``hist_bins``, ``hist`` ``(N, bins)``: counts of the rendered ranges (hits only) in equal bins
         over ``[0, hist_top_m)``.
 
-        ``about`` ``(x, y, yaw, sensor_z)``: the planar rendering (:meth:`planar_scores`) about this pose,
-        for a cloud of particles close around it."""
+        ``about``: the planar rendering (:meth:`planar_scores`) about this pose ``(x, y, yaw, sensor_z)``,
+        for a cloud of particles close around it; or about each of ``K`` poses ``(K, 4)``, each particle
+        about the one ``about_of`` ``(N,)`` names (hypotheses' local grids in one launch)."""
         if self._rays is None:
             raise InputError("no scan set: call set_scan first")
         p = np.ascontiguousarray(particles, np.float32)
@@ -473,7 +480,7 @@ class ParticleRenderer:
         if n == 0:
             return out
         if about is not None:
-            return self.planar_scores(p, z, out, bins, float(agree_m), float(hist_top_m), about)
+            return self.planar_scores(p, z, out, bins, float(agree_m), float(hist_top_m), about, about_of)
         groups = self._groups(p)
         if len(groups) == 1:
             return self._launch(p, z, out, bins, float(agree_m), float(hist_top_m))
@@ -550,31 +557,52 @@ class ParticleRenderer:
         c.launch(kernel, n, inputs, outs, min_chunk=min_chunk)
         return out if dev == "cpu" else {k: a.numpy() for k, a in zip(names, outs, strict=True)}
 
-    def planar_scores(self, p, z, out, bins: int, agree_m: float, hist_top_m: float, about) -> dict:
-        """:meth:`scores` of particles close around a reference pose ``about`` ``(x, y, yaw, sensor_z)``,
-        rendered without casting their rays: the scan's rays are cast once from the reference (with the
+    def planar_scores(
+        self, p, z, out, bins: int, agree_m: float, hist_top_m: float, about, about_of=None
+    ) -> dict:
+        """:meth:`scores` of particles close around a reference pose ``about`` ``(x, y, yaw, sensor_z)``
+        (or around several: ``about`` ``(K, 4)``, each particle's reference named by ``about_of`` ``(N,)``),
+        rendered without casting their rays: the scan's rays are cast once from each reference (with the
         surface normal where they meet the map), and each particle's rendered range is where its own ray
-        meets the plane of the surface that the reference's ray met. A converged cloud lies within
+        meets the plane of the surface that its reference's ray met. A converged cloud lies within
         decimetres of its estimate, where almost every ray meets the same surface as the estimate's ray,
         so the particles are ranked as the exact rendering ranks them for the cost of one particle's rays
         (rays near a depth edge, which the particle's own ray would pass, are rendered on the plane
         anyway). With ``explain_beyond``, whether the map has a surface near each measured point is also
         looked up from the reference."""
-        x, y, yaw, zs = (float(v) for v in np.asarray(about, np.float64).reshape(4))
+        refs = np.asarray(about, np.float64).reshape(-1, 4)
+        of = np.zeros(len(p), np.int32) if about_of is None else np.ascontiguousarray(about_of, np.int32)
+        if of.shape != (len(p),) or (len(of) and (of.min() < 0 or of.max() >= len(refs))):
+            raise InputError(f"planar rendering: {of.size} reference indices for {len(p)} particles")
         unit, o, r = self._scan
-        cy, sy = np.cos(yaw), np.sin(yaw)
-        rot = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
-        dw = unit.astype(np.float64) @ rot.T
-        ow = np.array([x, y, zs]) + o.astype(np.float64) @ rot.T
+        K, R = len(refs), len(r)
+        cy, sy = np.cos(refs[:, 2])[:, None], np.sin(refs[:, 2])[:, None]
+        u64, o64 = unit.astype(np.float64), o.astype(np.float64)
+        dw = np.stack(
+            [
+                cy * u64[None, :, 0] - sy * u64[None, :, 1],
+                sy * u64[None, :, 0] + cy * u64[None, :, 1],
+                np.broadcast_to(u64[None, :, 2], (K, R)),
+            ],
+            axis=-1,
+        ).reshape(-1, 3)
+        ow = np.stack(
+            [
+                refs[:, None, 0] + cy * o64[None, :, 0] - sy * o64[None, :, 1],
+                refs[:, None, 1] + sy * o64[None, :, 0] + cy * o64[None, :, 1],
+                refs[:, None, 3] + np.broadcast_to(o64[None, :, 2], (K, R)),
+            ],
+            axis=-1,
+        ).reshape(-1, 3)
+        m = np.tile(r.astype(np.float64), K)
         # cast a little past each ray's own reach: a particle behind the reference still meets the plane
-        hits = self.caster.cast(ow, dw, r + self.margin_m + PLANAR_REACH_M, normals=True)
+        hits = self.caster.cast(ow, dw, m + self.margin_m + PLANAR_REACH_M, normals=True)
         hit = np.isfinite(hits.ranges)
         points = ow + np.where(hit, hits.ranges, 0.0)[:, None] * dw
-        behind = np.ones(len(r), np.int32)
+        behind = np.ones(K * R, np.int32)
         if self.explain_beyond and self.cap_m < 1e30:
             # read only for a particle whose ray ends more than cap_m beyond the plane: the surface near its
             # measured point must lie behind the plane (past the reference's hit), within cap_m of that point
-            m = r.astype(np.float64)
             start = np.maximum(m - self.cap_m, np.where(hit, hits.ranges, 0.0) + PLANAR_BEHIND_M)
             length = m + self.cap_m - start
             found = self.caster.cast(ow + dw * start[:, None], dw, np.maximum(length, 0.0)).ranges
@@ -585,6 +613,7 @@ class ParticleRenderer:
             wp.array(p, dtype=wp.vec3, device=dev, copy=not cpu),
             wp.array(z, dtype=float, device=dev, copy=not cpu),
             *self._rays,
+            wp.array(of, dtype=wp.int32, device=dev),
             wp.array(points.astype(np.float32), dtype=wp.vec3, device=dev),
             wp.array(hits.normals.astype(np.float32), dtype=wp.vec3, device=dev),
             wp.array(hit.astype(np.int32), dtype=wp.int32, device=dev),
@@ -598,5 +627,4 @@ class ParticleRenderer:
             agree_m,
             hist_top_m,
         ]
-        # no ray is cast: a few thousand particles are one chunk's work
-        return self._run(planar_residual_kernel, len(p), inputs, out, min_chunk=4096)
+        return self._run(planar_residual_kernel, len(p), inputs, out, min_chunk=PLANAR_CHUNK)

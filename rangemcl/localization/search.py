@@ -333,14 +333,14 @@ class SearchMixin:
         fresh[:, 2] = wrap_angle(fresh[:, 2] + self.rng.normal(0.0, syaw, len(fresh)))
         return fresh
 
-    def _window_loglik(self, poses: np.ndarray) -> np.ndarray:
-        """Each pose's ``(K, 3)`` log-likelihood summed over the scans of the last ``challenge_updates``
-        updates since the search began (the current one included), the pose moved back along the
-        odometry to each of them (updates without a scan add nothing)."""
+    def _window_loglik(self, poses: np.ndarray, updates: int | None = None) -> np.ndarray:
+        """Each pose's ``(K, 3)`` log-likelihood summed over the scans of the last ``updates`` (default
+        ``challenge_updates``) updates since the search began (the current one included), the pose moved
+        back along the odometry to each of them (updates without a scan add nothing)."""
         p = np.asarray(poses, np.float64).reshape(-1, 3).copy()
         total = np.zeros(len(p))
         entries = list(self._recent)
-        n = min(self.challenge_updates, self._since_spread, len(entries))
+        n = min(self.challenge_updates if updates is None else updates, self._since_spread, len(entries))
         for i in range(len(entries) - 1, len(entries) - 1 - n, -1):
             rays, motion = entries[i]
             if rays is not None:

@@ -238,8 +238,11 @@ class ConvergenceSettings:
     particles) until then (`rangemcl.localization.hypotheses`)."""
 
     method: str = "hypotheses"
-    """The convergence rule: `hypotheses` (a sequential test on clusters of particles) or `tiles` (the
-    paper's rule: all particles within `tiles` map tiles)."""
+    """The global search and its convergence rule: `hypotheses` (a cloud of particles spread over the map,
+    a sequential test on its clusters), `tiles` (the paper's rule: all particles within `tiles` map
+    tiles) or `prior` (experimental: a few dozen hypotheses born from the place prior's best places for
+    each scan, each searched on a local grid rendered planar about it, and the same sequential test;
+    `rangemcl.localization.prior_search`)."""
     tiles: int = 1
     """`method: tiles`: converged when all particles lie in at most this many map tiles (and 95 % of them
     within `max_radius_m`)."""
@@ -558,7 +561,7 @@ class LocalizerSettings:
             "observation.ray_sampling": RAY_SAMPLINGS,
             "observation.converged_rendering": ("exact", "planar"),
             "motion.calibration": ("estimator", "particles"),
-            "convergence.method": ("hypotheses", "tiles"),
+            "convergence.method": ("hypotheses", "tiles", "prior"),
             "recovery.signal": ("inliers", "residual"),
         }
         for key, allowed in choices.items():
