@@ -36,9 +36,10 @@ import warp as wp
 from rangemcl.errors import InputError
 from rangemcl.raycast import RayCaster, closest_hit
 
-# the planar rendering casts each reference ray this far past the ray's own reach (m): a particle up to
-# this far behind the reference along the ray still meets the plane of the surface the reference met
-PLANAR_REACH_M = 1.0
+# the planar rendering casts each reference ray this far past the ray's own reach (m): a particle behind
+# the reference, or turned from it where the ray grazes the surface, still meets the plane the reference
+# met (a reference ray that ends short of it would render every particle's ray a miss)
+PLANAR_REACH_M = 5.0
 # ... and looks for a surface behind the one it met from this far past it (m), for explain_beyond
 PLANAR_BEHIND_M = 0.05
 PLANAR_CHUNK = 50  # particles per chunk of the planar kernel on the CPU threads (no ray is cast: cheap)

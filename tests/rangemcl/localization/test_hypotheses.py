@@ -479,3 +479,34 @@ def test_a_wrong_convergence_planted_in_a_run_is_caught_within_10_frames():
             break
     assert caught is not None and caught <= 10, caught
     assert not loc.converged or abs(loc.estimate()[1]) < 1.0  # gave the twin up
+
+
+@pytest.mark.parametrize("k", [2, 8])
+def test_the_prior_search_waits_for_the_one_distinct_street_among_k_identical_ones(k):
+    """The same streets and sensor with the prior search (`convergence.method: prior`): a few dozen
+    hypotheses born from the place prior, each searched on local grids rendered planar about it, a newborn
+    judged over the recent scans against the leader. Every street explains the scans alike until the
+    marker comes within reach (x > 55 m): the search must not converge before, then converge on the marked
+    street, with hypotheses on the twin streets until then."""
+    caster, m = k_streets(k)
+    geo = RangeImageGeometry.for_spec(load_spec("mq-8").with_columns(360))
+    path = np.column_stack([np.arange(0.0, 140.0, 0.8), np.zeros(175), np.zeros(175)])
+    s = twin_settings()
+    s.convergence.method = "prior"
+    s.observation = ObservationSettings(rays=100, max_range_m=40.0)
+    loc = build_localizer(m, s, seed=1, caster=caster)
+    loc.spread()
+    converged_at, streets = None, set()
+    for i in range(len(path)):
+        delta = se2_between(path[i - 1], path[i]) if i else np.zeros(3)
+        info = loc.step(delta, scan_at(caster, geo, path[i]))
+        if info.converged_now:
+            converged_at = i
+            break
+        if path[i, 0] < 50.0 and info.hypotheses:  # the streets the hypotheses stand on
+            streets |= {int(round(h.centroid[1] / 60.0)) for h in loc.hypotheses}
+    assert converged_at is not None
+    assert path[converged_at, 0] > 55.0, path[converged_at]
+    est = loc.estimate()
+    assert abs(est[1]) < 1.0 and abs(est[0] - path[converged_at, 0]) < 1.0, (est, path[converged_at])
+    assert len(streets) >= min(k, 2)  # the twins were held as rivals, not left out

@@ -299,6 +299,14 @@ def test_planar_rendering_is_exact_where_every_ray_meets_one_plane(cap, beyond, 
         np.testing.assert_allclose(planar[key], exact[key], atol=2e-4, err_msg=key)
     np.testing.assert_array_equal(planar["hist"], exact["hist"])
     assert exact["mean"].std() > 0.05  # the particles do differ
+    # several references in one launch (a search's local grids): each particle about its own
+    refs = np.array([[*ref, z], [0.3, -0.2, 0.19, z + 0.05], [-0.2, 0.25, 0.21, z - 0.05]])
+    of = np.arange(len(particles)) % 3
+    multi = renderer.scores(particles, zs, hist_bins=12, hist_top_m=60.0, about=refs, about_of=of)
+    for key in ("mean", "agree", "beyond", "structure"):
+        np.testing.assert_allclose(multi[key], exact[key], atol=2e-4, err_msg=key)
+    with pytest.raises(InputError, match="reference indices"):
+        renderer.scores(particles, zs, about=refs, about_of=of[:-1])
 
 
 def test_planar_rendering_ranks_a_compact_cloud_as_the_exact_one(scene):
