@@ -10,9 +10,10 @@ local peaks. Here the filter keeps only those places:
 * **Births**: at each update the place prior's best places for the scan
   (:meth:`~rangemcl.localization.place_prior.PlacePrior.candidates`, no ray cast) that lie away from every
   hypothesis start as hypotheses (``PRIOR_SEARCH_BIRTHS`` of them at most).
-* **Local grids**: every hypothesis moves with the odometry and is searched around on each scan, a coarse
-  grid (:data:`COARSE`, every third ray) then a fine one around its best pose (:data:`FINE`); it moves to
-  the fine grid's best pose, and that pose's log-likelihood adds to its evidence. Every grid is rendered
+* **Local grids**: every hypothesis moves with the odometry and is searched around on each scan on a fine
+  grid (:data:`FINE`; a newborn, which the prior places only to within its cell and a few degrees, on a
+  coarse grid first, :data:`COARSE`, on every third ray); it moves to the fine grid's best pose, and that
+  pose's log-likelihood adds to its evidence. Every grid is rendered
   planar about its hypothesis (:meth:`~rangemcl.localization.renderer.ParticleRenderer.planar_scores`:
   the scan's rays cast once from each hypothesis, all grids in one launch), so a hypothesis costs about
   one particle's rays.
@@ -43,7 +44,7 @@ from rangemcl.localization.scan_prep import ScanRays
 from rangemcl.se2 import wrap_angle
 
 PRIOR_SEARCH_HYPOTHESES = 32  # hypotheses kept at most (the best by evidence)
-PRIOR_SEARCH_BIRTHS = 12  # the prior's best places that may start as hypotheses at each update
+PRIOR_SEARCH_BIRTHS = 8  # the prior's best places that may start as hypotheses at each update
 PRIOR_SEARCH_CANDIDATES = 64  # ... chosen among this many of the prior's best places
 PRIOR_SEARCH_WINDOW = 6  # updates over which a newborn is judged against the leader
 # the local grids: half width and step in metres along and across the hypothesis' heading, then degrees;
@@ -102,9 +103,9 @@ class PriorSearchMixin:
             self._next_hyp_id += len(born)
         if len(poses) == 0:
             return dict(resampled=False, hypotheses=0, evidence_nats=0.0, inliers=math.nan)
-        poses, loglik, inliers, bad = self._searched(rays, poses)
         newborn = np.zeros(len(poses), bool)
         newborn[len(poses) - len(born) :] = True
+        poses, loglik, inliers, bad = self._searched(rays, poses, newborn)
         old = ~newborn
         if old.any():
             evidence = evidence + loglik
@@ -179,14 +180,18 @@ class PriorSearchMixin:
             keep.append(c)
         return np.asarray(keep, np.float64).reshape(-1, 3)
 
-    def _searched(self, rays: ScanRays, poses: np.ndarray):
-        """Each hypothesis searched on this scan: the coarse grid on every third ray, then the fine grid
-        around its best pose, all rendered planar about the hypothesis. Returns the fine grids' best poses
-        ``(K, 3)``, their log-likelihoods, inlier shares (NaN for models without) and badness."""
-        pose, _ll, _inl, _bad = self._best_on_grid(
-            rays.subset(slice(None, None, COARSE_RAYS_EVERY)), poses, grid_offsets(COARSE)
-        )
-        return self._best_on_grid(rays, pose, grid_offsets(FINE))
+    def _searched(self, rays: ScanRays, poses: np.ndarray, newborn: np.ndarray):
+        """Each hypothesis searched on this scan, rendered planar about it: a newborn (placed by the prior
+        to within its cell and a few degrees) on the coarse grid on every third ray first, then every
+        hypothesis on the fine grid around its pose (one that was searched before sits on its peak, moved
+        by the odometry since). Returns the fine grids' best poses ``(K, 3)``, their log-likelihoods,
+        inlier shares (NaN for models without) and badness."""
+        poses = poses.copy()
+        if newborn.any():
+            poses[newborn] = self._best_on_grid(
+                rays.subset(slice(None, None, COARSE_RAYS_EVERY)), poses[newborn], grid_offsets(COARSE)
+            )[0]
+        return self._best_on_grid(rays, poses, grid_offsets(FINE))
 
     def _best_on_grid(self, rays: ScanRays, poses: np.ndarray, offsets: np.ndarray):
         k, g = len(poses), len(offsets)
