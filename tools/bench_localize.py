@@ -20,6 +20,8 @@ Embree ``RaycastingScene`` in the same run as the peer.
   hypotheses thin out), the frame it converged at and its error then, and the first correct fix (a
   convergence within 5 m): the seconds of compute through its frame and the metres driven; the search's
   filter is built anew, and its start-up (the filter, the place priors loaded, before frame 0) is timed.
+  Once per search method (``--search``, default ``hypotheses,prior``: the particle search and the prior
+  search), in the same run.
 * the place prior: rendered anew for the map (seconds), its size in memory and on disk, per km² of the
   drivable area it covers; the same for a beam prior (the prior of a sensor that sees nothing above the
   parked cars: one beam, ``--beam-deg``, default the MQ-8's top beam, from the sensor's height).
@@ -69,6 +71,11 @@ def main() -> None:
     ap.add_argument("--search-frames", type=int, default=80)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--search",
+        default="hypotheses,prior",
+        help="convergence.method values whose global search is measured from frame 0, comma-separated",
+    )
     ap.add_argument(
         "--converged-rendering",
         default="exact,planar",
@@ -209,42 +216,50 @@ def main() -> None:
         "embree_over_warp": statistics.median(ge) / statistics.median(gw),
     }
 
-    # --- a whole global search from frame 0 (a new filter: its start-up timed) ------------------------------
-    t0 = time.perf_counter()
-    loc = build_localizer(
-        mesh_map, settings, rng=np.random.default_rng(args.seed), device=args.device, sensor_height_m=1.73
-    )
-    loc.spread(args.many)
-    loc.warm_up(seq.scan(0), tuple(seq.imu_roll_pitch[0]) if seq.imu_roll_pitch is not None else None)
-    startup_s = time.perf_counter() - t0
-    search_s, conv_at, conv_err, fix_s, fix_m = [], None, None, None, None
-    for i in range(min(args.search_frames, len(seq))):
-        delta = se2_between(odo[i - 1], odo[i]) if i else np.zeros(3)
-        rp = tuple(seq.imu_roll_pitch[i]) if seq.imu_roll_pitch is not None else None
-        info = loc.step(
-            delta,
-            seq.scan(i),
-            fire_time_s=seq.point_meta(i).get("time_s"),
-            frame_period_s=period,
-            roll_pitch=rp,
+    # --- a whole global search from frame 0, each search method (a new filter: its start-up timed) ---------
+    def global_search(method: str) -> dict:
+        s = LocalizerSettings()
+        s.convergence.method = method
+        t0 = time.perf_counter()
+        loc = build_localizer(
+            mesh_map, s, rng=np.random.default_rng(args.seed), device=args.device, sensor_height_m=1.73
         )
-        if info.converged:
-            conv_at, conv_err = i, float(np.hypot(*(info.estimate[:2] - truth[i, :2])))
-            if conv_err <= 5.0:  # the first correct fix: the compute through this frame, the metres driven
-                fix_s = sum(search_s) + info.seconds
-                fix_m = float(np.hypot(*np.diff(truth[: i + 1, :2], axis=0).T).sum())
-            break
-        search_s.append(info.seconds)
-    search = {
-        "particles": args.many,
-        "seconds_per_frame_median": statistics.median(search_s) if search_s else None,
-        "seconds_per_frame_max": max(search_s) if search_s else None,
-        "converged_frame": conv_at,
-        "error_at_convergence_m": conv_err,
-        "first_fix_seconds": fix_s,
-        "first_fix_driven_m": fix_m,
-        "startup_seconds": startup_s,
-    }
+        loc.spread(args.many)
+        loc.warm_up(seq.scan(0), tuple(seq.imu_roll_pitch[0]) if seq.imu_roll_pitch is not None else None)
+        startup_s = time.perf_counter() - t0
+        frame_s, conv_at, conv_err, fix_s, fix_m = [], None, None, None, None
+        for i in range(min(args.search_frames, len(seq))):
+            delta = se2_between(odo[i - 1], odo[i]) if i else np.zeros(3)
+            rp = tuple(seq.imu_roll_pitch[i]) if seq.imu_roll_pitch is not None else None
+            info = loc.step(
+                delta,
+                seq.scan(i),
+                fire_time_s=seq.point_meta(i).get("time_s"),
+                frame_period_s=period,
+                roll_pitch=rp,
+            )
+            frame_s.append(info.seconds)  # the converging frame is the search's last
+            if info.converged:
+                conv_at, conv_err = i, float(np.hypot(*(info.estimate[:2] - truth[i, :2])))
+                if conv_err <= 5.0:  # the first correct fix: the compute through this frame, metres driven
+                    fix_s = sum(frame_s)
+                    fix_m = float(np.hypot(*np.diff(truth[: i + 1, :2], axis=0).T).sum())
+                break
+        return {
+            "method": method,
+            "particles": args.many if method != "prior" else None,
+            "seconds_per_frame_median": statistics.median(frame_s) if frame_s else None,
+            "seconds_per_frame_max": max(frame_s) if frame_s else None,
+            "frames_over_100ms": sum(t > 0.1 for t in frame_s),
+            "converged_frame": conv_at,
+            "error_at_convergence_m": conv_err,
+            "first_fix_seconds": fix_s,
+            "first_fix_driven_m": fix_m,
+            "startup_seconds": startup_s,
+        }
+
+    searches = {m: global_search(m) for m in (x.strip() for x in args.search.split(",")) if m}
+    search = next(iter(searches.values()))
 
     # --- the place prior: rendered anew ---------------------------------------------------------------------
     import tempfile
@@ -285,6 +300,7 @@ def main() -> None:
         "after_convergence_by_rendering": tracked,
         "before_convergence": before,
         "global_search": search,
+        "global_search_by_method": searches,
         "place_prior": prior_fig,
     }
     print(
@@ -318,26 +334,29 @@ def main() -> None:
         f"(target <= 3 s; paper <= 56.7 s on a GTX 1080 Ti); Embree weighting "
         f"{before['weighting_median_s_embree']:.2f} s (Embree/Warp {before['embree_over_warp']:.2f})"
     )
-    print(
-        f"global search ({args.many:,} particles, from frame 0): "
-        + (
-            f"{search['seconds_per_frame_median']:.2f} s per frame median, "
-            f"{search['seconds_per_frame_max']:.2f} s max before convergence; "
-            if search_s
-            else ""
+    for g in searches.values():
+        who = f"{args.many:,} particles" if g["particles"] else "the place prior's hypotheses"
+        print(
+            f"global search, {g['method']} ({who}, from frame 0): "
+            + (
+                f"{g['seconds_per_frame_median']:.3f} s per frame median, {g['seconds_per_frame_max']:.3f} s "
+                f"at most ({g['frames_over_100ms']} frames over 100 ms); "
+                if g["seconds_per_frame_median"] is not None
+                else ""
+            )
+            + (
+                f"converged at frame {g['converged_frame']}, {g['error_at_convergence_m']:.2f} m off"
+                if g["converged_frame"] is not None
+                else f"not converged in {args.search_frames} frames"
+            )
+            + (
+                f"; first correct fix after {g['first_fix_seconds']:.2f} s of compute and "
+                f"{g['first_fix_driven_m']:.1f} m driven"
+                if g["first_fix_seconds"] is not None
+                else "; no correct fix"
+            )
+            + f"; start-up (filter, place priors) {g['startup_seconds']:.2f} s"
         )
-        + (
-            f"converged at frame {conv_at}, {conv_err:.2f} m off"
-            if conv_at is not None
-            else f"not converged in {args.search_frames} frames"
-        )
-        + (
-            f"; first correct fix after {fix_s:.2f} s of compute and {fix_m:.1f} m driven"
-            if fix_s is not None
-            else "; no correct fix"
-        )
-        + f"; start-up (filter, place priors) {search['startup_seconds']:.2f} s"
-    )
     print(
         f"place prior: {prior_fig['cells']:,} cells of {params.cell_m:g} m ({area_km2:.3f} km2 drivable), "
         f"rendered in {prior_fig['build_s']:.1f} s ({prior_fig['build_s_per_km2']:.0f} s per km2), "
