@@ -215,6 +215,12 @@ class MonteCarloLocalizer(SearchMixin, PriorSearchMixin, RecoveryMixin):
     ):
         if convergence not in ("hypotheses", "tiles", "prior"):
             raise InputError(f"convergence {convergence!r}: expected 'hypotheses', 'tiles' or 'prior'")
+        if convergence == "prior" and getattr(mesh_map, "budgeted", False):
+            # its hypotheses are born where the prior points, whose tiles a budget may not hold yet
+            raise InputError(
+                "convergence.method 'prior': not yet for a map held within a memory budget (--map-memory); "
+                "use 'hypotheses'"
+            )
         self.map = mesh_map
         self.scorer = scorer
         self.caster = caster

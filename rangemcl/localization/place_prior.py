@@ -196,7 +196,7 @@ def scan_profile(
     fraction of a degree can be half the ring spacing of a sensor with few beams), else it is read from
     ``points``."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
-    finite = np.isfinite(p).all(axis=1)
+    finite = np.isfinite(p[:, 0] + p[:, 1] + p[:, 2])  # a NaN or an infinity in a row makes its sum one
     p = p[finite]
     h = p[:, 2] + float(sensor_height_m)
     r = np.hypot(p[:, 0], p[:, 1])

@@ -46,7 +46,7 @@ from rangemcl.se2 import wrap_angle
 PRIOR_SEARCH_HYPOTHESES = 32  # hypotheses kept at most (the best by evidence)
 PRIOR_SEARCH_BIRTHS = 8  # the prior's best places that may start as hypotheses at each update
 PRIOR_SEARCH_CANDIDATES = 64  # ... chosen among this many of the prior's best places
-PRIOR_SEARCH_WINDOW = 6  # updates over which a newborn is judged against the leader
+PRIOR_SEARCH_WINDOW = 4  # updates over which a newborn is judged against the leader
 # the local grids: half width and step in metres along and across the hypothesis' heading, then degrees;
 # within the planar rendering's reach (1 m, 3 degrees) of the hypothesis they are rendered about
 COARSE = (1.0, 0.5, 3.0, 1.5)

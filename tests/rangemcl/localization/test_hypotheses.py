@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from rangemcl import meshgen
+from rangemcl.errors import InputError
 from rangemcl.localization import LocalizerSettings, ObservationSettings, build_localizer
 from rangemcl.localization.hypotheses import (
     ConvergenceTest,
@@ -510,3 +511,14 @@ def test_the_prior_search_waits_for_the_one_distinct_street_among_k_identical_on
     est = loc.estimate()
     assert abs(est[1]) < 1.0 and abs(est[0] - path[converged_at, 0]) < 1.0, (est, path[converged_at])
     assert len(streets) >= min(k, 2)  # the twins were held as rivals, not left out
+
+
+def test_the_prior_search_refuses_a_map_held_within_a_budget():
+    """Its hypotheses are born where the place prior points, whose tiles a budget may not hold: one clear
+    error, not scores against missing tiles."""
+    caster, m = k_streets(2)
+    m.__class__ = type("BudgetedMap", (MeshMap,), {"budgeted": True})
+    s = twin_settings()
+    s.convergence.method = "prior"
+    with pytest.raises(InputError, match="'prior': not yet for a map held within a memory budget"):
+        build_localizer(m, s, seed=1, caster=caster)
