@@ -45,7 +45,8 @@ from rangemcl.se2 import wrap_angle
 
 PRIOR_SEARCH_HYPOTHESES = 32  # hypotheses kept at most (the best by evidence)
 PRIOR_SEARCH_BIRTHS = 8  # the prior's best places that may start as hypotheses at each update
-PRIOR_SEARCH_CANDIDATES = 64  # ... chosen among this many of the prior's best places
+PRIOR_SEARCH_CANDIDATES = 64  # ... chosen among this many of the prior's best places, best first ...
+PRIOR_SEARCH_LONG_SHOTS = 2  # ... but this many of them drawn at random from its best init.prior_top
 PRIOR_SEARCH_WINDOW = 4  # updates over which a newborn is judged against the leader
 # the local grids: half width and step in metres along and across the hypothesis' heading, then degrees;
 # within the planar rendering's reach (1 m, 3 degrees) of the hypothesis they are rendered about
@@ -156,19 +157,26 @@ class PriorSearchMixin:
 
     def _births(self, levelled: np.ndarray | None, poses: np.ndarray) -> np.ndarray:
         """The prior's best places for the scan that lie away from every hypothesis (at most
-        ``PRIOR_SEARCH_BIRTHS``), ``(B, 3)``."""
+        ``PRIOR_SEARCH_BIRTHS``, ``PRIOR_SEARCH_LONG_SHOTS`` of them drawn from further down its list),
+        ``(B, 3)``."""
         if levelled is None or not self.use_prior:
             return np.zeros((0, 3))
         prior = self.prior_for(levelled)
+        top = max(self.prior_top, PRIOR_SEARCH_CANDIDATES)
         xy, yaw, _cost, known = prior.candidates(
-            levelled, self.sensor_height_m, PRIOR_SEARCH_CANDIDATES, self._elevations(prior, levelled)
+            levelled, self.sensor_height_m, top, self._elevations(prior, levelled)
         )
         if known < max(8, prior.params.bins // 20):
             return np.zeros((0, 3))
         cand = np.column_stack([xy, yaw])
+        # the best places first; a few long shots from further down the prior's list, so that a place the
+        # prior ranks behind its best for a while still gets its chance
+        head = cand[:PRIOR_SEARCH_CANDIDATES]
+        tail = cand[PRIOR_SEARCH_CANDIDATES:]
+        shots = tail[self.rng.permutation(len(tail))[:PRIOR_SEARCH_LONG_SHOTS]] if len(tail) else tail
         keep = []
         taken = poses[:, :3]
-        for c in cand:
+        for c in np.vstack([shots, head]):
             if len(keep) >= PRIOR_SEARCH_BIRTHS:
                 break
             others = np.vstack([taken, np.asarray(keep).reshape(-1, 3)]) if keep else taken
