@@ -332,6 +332,7 @@ class MonteCarloLocalizer(SearchMixin, PriorSearchMixin, RecoveryMixin):
         self._hyp_ids = np.zeros(0, np.int64)
         self._next_hyp_id = 0
         self._leader_id = -1
+        self._prior_slice = 0  # the prior's slice of cells that the prior search matches next
 
     # --- the tracking's state, as the filter's (read by the run's summary and the tools) ------------------
 

@@ -310,8 +310,13 @@ class PlacePrior:
 
     # --- matching ----------------------------------------------------------------------------------------
 
-    def match(self, profile: np.ndarray, known: np.ndarray, *, two_stage: bool | None = None) -> PriorMatch:
+    def match(
+        self, profile: np.ndarray, known: np.ndarray, *, two_stage: bool | None = None, cells=None
+    ) -> PriorMatch:
         """Compare a scan's profile (:func:`scan_profile`) with every cell at every yaw.
+
+        ``cells`` (indices): compare only these cells, in one stage; the others get an infinite cost (a
+        search that spreads the prior's cells over its updates).
 
         ``two_stage`` (default: for priors of at least ``TWO_STAGE_MIN_CELLS`` cells, a city's) first
         compares every cell on ``COARSE_FACTOR``-times coarser azimuth bins (each the nearest of its bins:
@@ -327,6 +332,11 @@ class PlacePrior:
         K = len(self.xy)
         if n < 1:
             return PriorMatch(np.full(K, np.inf), np.zeros(K), 0, band)
+        if cells is not None:
+            keep = np.asarray(cells, np.int64).reshape(-1)
+            best, yaw = np.full(K, np.inf), np.zeros(K)
+            best[keep], yaw[keep] = self._best_shifts(self.profiles[keep, band], q, m)
+            return PriorMatch(np.maximum(best, 0.0), wrap_angle(yaw), int(n), band)
         if two_stage is None:
             two_stage = K >= TWO_STAGE_MIN_CELLS
         F = COARSE_FACTOR
@@ -384,13 +394,18 @@ class PlacePrior:
         return self._tree
 
     def candidates(
-        self, points: np.ndarray, sensor_height_m: float, top: int, elevation_deg: np.ndarray | None = None
+        self,
+        points: np.ndarray,
+        sensor_height_m: float,
+        top: int,
+        elevation_deg: np.ndarray | None = None,
+        cells=None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
         """The ``top`` best cells for a scan: ``(xy (T, 2), yaw (T,), cost (T,), known_bins)``, best first
-        (``elevation_deg``: as :func:`scan_profile`)."""
+        (``elevation_deg``: as :func:`scan_profile`; ``cells``: only among these, as :meth:`match`)."""
         prof, known = scan_profile(points, sensor_height_m, self.params, elevation_deg)
-        mt = self.match(prof, known)
-        top = int(min(top, len(self.xy)))
+        mt = self.match(prof, known, cells=cells)
+        top = int(min(top, len(self.xy) if cells is None else len(np.asarray(cells).reshape(-1))))
         idx = np.argpartition(mt.cost, top - 1)[:top]
         idx = idx[np.argsort(mt.cost[idx], kind="stable")]
         return self.xy[idx], mt.yaw[idx], mt.cost[idx], mt.known_bins

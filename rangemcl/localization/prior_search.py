@@ -48,6 +48,9 @@ PRIOR_SEARCH_BIRTHS = 8  # the prior's best places that may start as hypotheses 
 PRIOR_SEARCH_CANDIDATES = 64  # ... chosen among this many of the prior's best places, best first ...
 PRIOR_SEARCH_LONG_SHOTS = 2  # ... but this many of them drawn at random from its best init.prior_top
 PRIOR_SEARCH_WINDOW = 4  # updates over which a newborn is judged against the leader
+# the prior's cells matched per update: a larger prior is matched a slice at a time, each update the next
+# slice (a town of 24,000 cells in six updates), so that an update's cost does not grow with the map
+PRIOR_SEARCH_CELLS_PER_UPDATE = 4000
 # the local grids: half width and step in metres along and across the hypothesis' heading, then degrees;
 # within the planar rendering's reach (1 m, 3 degrees) of the hypothesis they are rendered about
 COARSE = (1.0, 0.5, 3.0, 1.5)
@@ -90,6 +93,7 @@ class PriorSearchMixin:
         self._hyp_ids = np.zeros(0, np.int64)
         self._next_hyp_id = 0
         self._leader_id = -1
+        self._prior_slice = 0
         self.convergence_test.reset()
 
     def _prior_search_update(self, rays: ScanRays, levelled: np.ndarray | None) -> dict:
@@ -163,8 +167,14 @@ class PriorSearchMixin:
             return np.zeros((0, 3))
         prior = self.prior_for(levelled)
         top = max(self.prior_top, PRIOR_SEARCH_CANDIDATES)
+        cells = None
+        K = len(prior.xy)
+        if K > PRIOR_SEARCH_CELLS_PER_UPDATE:  # this update's slice of the cells, interleaved over the map
+            slices = -(-K // PRIOR_SEARCH_CELLS_PER_UPDATE)
+            cells = np.arange(self._prior_slice % slices, K, slices)
+            self._prior_slice += 1
         xy, yaw, _cost, known = prior.candidates(
-            levelled, self.sensor_height_m, top, self._elevations(prior, levelled)
+            levelled, self.sensor_height_m, top, self._elevations(prior, levelled), cells=cells
         )
         if known < max(8, prior.params.bins // 20):
             return np.zeros((0, 3))

@@ -482,13 +482,20 @@ def test_a_wrong_convergence_planted_in_a_run_is_caught_within_10_frames():
     assert not loc.converged or abs(loc.estimate()[1]) < 1.0  # gave the twin up
 
 
-@pytest.mark.parametrize("k", [2, 8])
-def test_the_prior_search_waits_for_the_one_distinct_street_among_k_identical_ones(k):
+@pytest.mark.parametrize("k, cells_per_update", [(2, 12), (8, None)])
+def test_the_prior_search_waits_for_the_one_distinct_street_among_k_identical_ones(
+    k, cells_per_update, monkeypatch
+):
     """The same streets and sensor with the prior search (`convergence.method: prior`): a few dozen
     hypotheses born from the place prior, each searched on local grids rendered planar about it, a newborn
     judged over the recent scans against the leader. Every street explains the scans alike until the
     marker comes within reach (x > 55 m): the search must not converge before, then converge on the marked
-    street, with hypotheses on the twin streets until then."""
+    street, with hypotheses on the twin streets until then; also when the prior's cells are matched a
+    slice at a time (``cells_per_update``: a dozen, the prior holding some eighty)."""
+    from rangemcl.localization import prior_search
+
+    if cells_per_update is not None:
+        monkeypatch.setattr(prior_search, "PRIOR_SEARCH_CELLS_PER_UPDATE", cells_per_update)
     caster, m = k_streets(k)
     geo = RangeImageGeometry.for_spec(load_spec("mq-8").with_columns(360))
     path = np.column_stack([np.arange(0.0, 140.0, 0.8), np.zeros(175), np.zeros(175)])
@@ -511,6 +518,9 @@ def test_the_prior_search_waits_for_the_one_distinct_street_among_k_identical_on
     est = loc.estimate()
     assert abs(est[1]) < 1.0 and abs(est[0] - path[converged_at, 0]) < 1.0, (est, path[converged_at])
     assert len(streets) >= min(k, 2)  # the twins were held as rivals, not left out
+    if cells_per_update is not None:
+        prior = loc.beam_prior or loc.prior
+        assert len(prior.xy) > 5 * cells_per_update and loc._prior_slice > 5  # sliced, as asked
 
 
 def test_the_prior_search_refuses_a_map_held_within_a_budget():

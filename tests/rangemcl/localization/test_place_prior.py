@@ -149,6 +149,25 @@ def test_the_two_stage_match_keeps_the_true_cell_and_the_exact_costs_of_its_shor
     np.testing.assert_array_equal(prior._coarse, fine.min(axis=3))
 
 
+def test_a_match_of_some_cells_gives_them_their_whole_match_costs(town):
+    """``cells``: the subset's costs and yaws are those of the match of every cell, the rest infinite, and
+    candidates() ranks only among them."""
+    t, caster, _m, prior = town
+    rng = np.random.default_rng(5)
+    k = int(rng.integers(len(prior.xy)))
+    pts = scan(t, caster, *prior.xy[k], 0.7, "hdl-32e")
+    prof, known = scan_profile(pts, HEIGHT, prior.params)
+    whole = prior.match(prof, known, two_stage=False)
+    some = np.sort(rng.choice(len(prior.xy), len(prior.xy) // 3, replace=False))
+    part = prior.match(prof, known, cells=some)
+    np.testing.assert_array_equal(part.cost[some], whole.cost[some])
+    np.testing.assert_array_equal(part.yaw[some], whole.yaw[some])
+    assert np.isinf(np.delete(part.cost, some)).all()
+    xy, _yaw, _cost, _known = prior.candidates(pts, HEIGHT, 5, cells=some)
+    best = some[np.argsort(whole.cost[some], kind="stable")[:5]]
+    np.testing.assert_array_equal(xy, prior.xy[best])
+
+
 def test_profile_of_a_scan_keeps_only_the_height_bands_and_marks_empty_bins():
     p = PriorParams(bins=4)
     pts = np.array(
