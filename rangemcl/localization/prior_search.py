@@ -47,14 +47,15 @@ PRIOR_SEARCH_HYPOTHESES = 32  # hypotheses kept at most (the best by evidence)
 PRIOR_SEARCH_BIRTHS = 8  # the prior's best places that may start as hypotheses at each update
 PRIOR_SEARCH_CANDIDATES = 64  # ... chosen among this many of the prior's best places, best first ...
 PRIOR_SEARCH_LONG_SHOTS = 2  # ... but this many of them drawn at random from its best init.prior_top
-PRIOR_SEARCH_WINDOW = 4  # updates over which a newborn is judged against the leader
+PRIOR_SEARCH_WINDOW = 4  # updates over which a newborn is judged against the leader ...
+WINDOW_RAYS_EVERY = 2  # ... on every second ray of their scans
 # the prior's cells matched per update: a larger prior is matched a slice at a time, each update the next
 # slice (a town of 24,000 cells in six updates), so that an update's cost does not grow with the map
 PRIOR_SEARCH_CELLS_PER_UPDATE = 4000
 # the local grids: half width and step in metres along and across the hypothesis' heading, then degrees;
 # within the planar rendering's reach (1 m, 3 degrees) of the hypothesis they are rendered about
 COARSE = (1.0, 0.5, 3.0, 1.5)
-FINE = (0.2, 0.1, 0.6, 0.3)
+FINE = (0.1, 0.1, 0.6, 0.3)  # a hypothesis follows its peak: the odometry moves it a few cm per update
 COARSE_RAYS_EVERY = 3  # the coarse grid on every third ray
 MERGE_M = 1.0  # hypotheses this close (and MERGE_DEG) are one place
 MERGE_DEG = 5.0
@@ -117,7 +118,7 @@ class PriorSearchMixin:
             lead = int(np.flatnonzero(old)[np.argmax(evidence[old])])
             if newborn.any():  # judged over the recent scans against the leader
                 window = self._window_loglik(
-                    np.vstack([poses[lead][None], poses[newborn]]), PRIOR_SEARCH_WINDOW
+                    np.vstack([poses[lead][None], poses[newborn]]), PRIOR_SEARCH_WINDOW, WINDOW_RAYS_EVERY
                 )
                 evidence[newborn] = evidence[lead] + (window[1:] - window[0])
         else:

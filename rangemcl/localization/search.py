@@ -333,10 +333,13 @@ class SearchMixin:
         fresh[:, 2] = wrap_angle(fresh[:, 2] + self.rng.normal(0.0, syaw, len(fresh)))
         return fresh
 
-    def _window_loglik(self, poses: np.ndarray, updates: int | None = None) -> np.ndarray:
+    def _window_loglik(
+        self, poses: np.ndarray, updates: int | None = None, rays_every: int = 1
+    ) -> np.ndarray:
         """Each pose's ``(K, 3)`` log-likelihood summed over the scans of the last ``updates`` (default
         ``challenge_updates``) updates since the search began (the current one included), the pose moved
-        back along the odometry to each of them (updates without a scan add nothing)."""
+        back along the odometry to each of them (updates without a scan add nothing); on every
+        ``rays_every``-th ray of each scan."""
         p = np.asarray(poses, np.float64).reshape(-1, 3).copy()
         total = np.zeros(len(p))
         entries = list(self._recent)
@@ -344,6 +347,8 @@ class SearchMixin:
         for i in range(len(entries) - 1, len(entries) - 1 - n, -1):
             rays, motion = entries[i]
             if rays is not None:
+                if rays_every > 1:
+                    rays = rays.subset(slice(None, None, rays_every))
                 ll, _bad = self.scorer.score(rays, p, self.sensor_z(p[:, :2]))
                 total += ll
             p = se2_compose(p, se2_inverse(motion))  # the pose at the update before
