@@ -13,10 +13,12 @@
   (``scan_updates``).
 * **Location RMSE** over (x, y) and **yaw RMSE** in degrees, over the frames from convergence on.
 * **Frames to converge**: from the first frame of the run.
-* **First correct fix** (given the seconds each frame took): the first convergence declared within
-  ``success_m`` of the truth (``first_fix_frame``), the compute it took from the first frame through that
-  frame's own (``first_fix_seconds``) and the distance the car drove meanwhile (``first_fix_driven_m``,
-  along the true path); None when no convergence was correct. A wrong convergence before it costs its time.
+* **First correct fix**: the first convergence declared within ``success_m`` of the truth
+  (``first_fix_frame``) and the distance the car drove meanwhile (``first_fix_driven_m``, along the true
+  path); given the seconds each frame took (``rangemcl evaluate`` reads them from ``frames.csv``; a run
+  writes them in ``summary.json``, not in its ``metrics.json``, whose bytes repeat), the compute from the
+  first frame through that frame's own (``first_fix_seconds``). None when no convergence was correct. A
+  wrong convergence before it costs its time.
 * **Wrong convergences** (given the frames where the filter declared convergence): declared while more
   than ``success_m`` off, each with its frame, its error and the frame of the re-spread that undid it
   (``caught_frame``, None if none did); a run with one is reported as such even if it recovers.
@@ -109,9 +111,11 @@ def localization_metrics(
         if w["caught_frame"] is None or w["caught_frame"] - w["frame"] > caught_within
     )
     events["caught_within_frames"] = caught_within
-    if seconds is not None:
-        onsets = convergence_frames if convergence_frames is not None else [converged_frame]
-        events.update(first_correct_fix(loc, truth_xyyaw, onsets, seconds, success_m=success_m))
+    onsets = convergence_frames if convergence_frames is not None else [converged_frame]
+    fix = first_correct_fix(loc, truth_xyyaw, onsets, seconds, success_m=success_m)
+    if seconds is None:  # a timing: not part of a run's metrics.json, whose bytes repeat with its input
+        del fix["first_fix_seconds"]
+    events.update(fix)
     out: dict = {
         "frames": n,
         "converged": converged_frame is not None,
@@ -189,16 +193,17 @@ def first_correct_fix(
     location_error_m: np.ndarray,
     truth_xyyaw: np.ndarray,
     convergence_frames: list[int | None],
-    seconds: np.ndarray,
+    seconds: np.ndarray | None = None,
     *,
     success_m: float = 5.0,
 ) -> dict:
     """The first convergence declared within ``success_m`` of the truth (an index into the arrays), the
-    seconds of compute from the first frame through it (``seconds`` ``(N,)``, each frame's) and the
-    distance driven meanwhile along the true path ``(N, 3)``; all None when no convergence was correct."""
+    seconds of compute from the first frame through it (``seconds`` ``(N,)``, each frame's; None: not
+    known) and the distance driven meanwhile along the true path ``(N, 3)``; all None when no convergence
+    was correct."""
     err = np.asarray(location_error_m, np.float64)
-    secs = np.asarray(seconds, np.float64).reshape(-1)
-    if len(secs) != len(err):
+    secs = None if seconds is None else np.asarray(seconds, np.float64).reshape(-1)
+    if secs is not None and len(secs) != len(err):
         raise InputError(f"seconds: {len(secs)} values for {len(err)} frames")
     right = sorted(int(f) for f in convergence_frames if f is not None and 0 <= int(f) < len(err))
     right = [f for f in right if err[f] <= success_m]
@@ -208,7 +213,7 @@ def first_correct_fix(
     xy = np.asarray(truth_xyyaw, np.float64)[: f + 1, :2]
     return {
         "first_fix_frame": f,
-        "first_fix_seconds": float(secs[: f + 1].sum()),
+        "first_fix_seconds": None if secs is None else float(secs[: f + 1].sum()),
         "first_fix_driven_m": float(np.hypot(*np.diff(xy, axis=0).T).sum()),
     }
 

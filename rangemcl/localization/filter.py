@@ -373,12 +373,13 @@ class MonteCarloLocalizer(SearchMixin, PriorSearchMixin, RecoveryMixin):
         return self.prior
 
     def warm_up(self, points: np.ndarray | None = None, roll_pitch=None) -> dict:
-        """What the first frames would otherwise do on the way, done before them: the place prior loaded
-        (rendered once and stored, if the map folder has none), the beam prior decided with ``points`` (the
-        first scan, as the first update would decide it) and loaded. Draws nothing from the generator and
-        leaves the cloud as it is, so a run's results do not depend on it. Returns the seconds it took."""
+        """What the first frames would otherwise do on the way, done before them: for a search, the place
+        prior loaded (rendered once and stored, if the map folder has none), the beam prior decided with
+        ``points`` (the first scan, as the first update would decide it) and loaded (a tracking filter
+        loads them when it is lost). Draws nothing from the generator and leaves the cloud as it is, so a
+        run's results do not depend on it. Returns the seconds it took."""
         t0 = time.perf_counter()
-        if self.use_prior:
+        if self.use_prior and not self.converged:  # a search's first update needs them (tracking: when lost)
             self.place_prior()
             if points is not None and len(points) and self.use_beam_prior:
                 raw = self._scan_raw

@@ -349,6 +349,12 @@ class LocalizationPipeline:
             if isinstance(self.map, MeshMap):  # a map within a budget is not sent whole
                 self.viz.log_mesh_map(self.map)
 
+    def _first_fix_seconds(self) -> float | None:
+        m = self.metrics
+        if not m or m.get("first_fix_frame") is None:
+            return None
+        return float(self.log.seconds[: m["first_fix_frame"] - self.first + 1].sum())
+
     def warm_up(self) -> None:
         """The filter's start-up work done before the first frame (:meth:`MonteCarloLocalizer.warm_up`),
         with the first frame's scan (an unreadable one: the beam prior is decided at the first update)."""
@@ -543,7 +549,6 @@ class LocalizationPipeline:
             recovery_frames=[f - first for f in ev["recovery_frames"]],
             frames_with_scan=int(self.log.scanned.sum()),
             updates=self.log.updated,
-            seconds=self.log.seconds,
         )
         shift_event_frames(metrics, first)
         metrics["first_frame"] = first
@@ -597,6 +602,9 @@ class LocalizationPipeline:
             "sensor_height_source": self.height_source,
             "particles_initial": int(log.particles[0]) if log.done else None,
             "seconds_total": log.wall_s,
+            # the first correct fix's compute, from the first frame through its frame (metrics.json has
+            # the frame and the metres driven: its bytes do not depend on the machine's speed)
+            "first_fix_seconds": self._first_fix_seconds(),
             # before the first frame: the sequence and map opened, the filter built, its priors loaded
             "startup_seconds": self.startup["seconds"],
             "startup": self.startup,

@@ -324,7 +324,7 @@ def run_trial(
         "success": success,
         "frames_to_converge": None if conv is None else conv - s["first_frame"],
         # the first correct convergence: compute from the trial's first frame through it, metres driven
-        "fix_seconds": m.get("first_fix_seconds"),
+        "fix_seconds": s.get("first_fix_seconds"),
         "fix_driven_m": m.get("first_fix_driven_m"),
         "recoveries": s["recoveries"],
         "relocalized_after_frames": (conv - s["first_frame"] - trial.frames // 2)

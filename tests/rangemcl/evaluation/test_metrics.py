@@ -69,7 +69,9 @@ def test_the_first_correct_fix_costs_the_compute_and_the_distance_up_to_it():
     assert fix["first_fix_driven_m"] == pytest.approx(10 * np.pi, rel=1e-3) and fix["first_fix_seconds"] == 50
     none = first_correct_fix(np.full(50, 60.0), arc, [10, 20], np.ones(50))
     assert none == {"first_fix_frame": None, "first_fix_seconds": None, "first_fix_driven_m": None}
-    assert "first_fix_frame" not in localization_metrics(est, truth, 30)  # no seconds: not known
+    plain = localization_metrics(est, truth, 30, convergence_frames=[12, 30])  # no seconds: no timing
+    assert plain["first_fix_frame"] == 30 and "first_fix_seconds" not in plain
+    assert plain["first_fix_driven_m"] == pytest.approx(30.0)
     with pytest.raises(InputError, match="seconds: 3 values for 100 frames"):
         localization_metrics(est, truth, 30, seconds=np.ones(3))
 
