@@ -254,6 +254,7 @@ def evaluate_results(results_dir, gt_path, *, check_every: int = 100, success_m:
         )
     est_l = est @ Tr
     gt_l = gt[first : first + len(est)] @ Tr
+    updated = _frames_column(results_dir / "frames.csv", "updated", len(est))
     with_scan = summary.get("frames_localized_from_scans")  # (results of an earlier version: not known)
     metrics = localization_metrics(
         xyyaw_of(est_l),
@@ -264,8 +265,8 @@ def evaluate_results(results_dir, gt_path, *, check_every: int = 100, success_m:
         convergence_frames=conv_frames,
         recovery_frames=rec_frames,
         frames_with_scan=with_scan if isinstance(with_scan, int) and 0 <= with_scan <= len(est) else None,
-        updates=_updated_column(results_dir / "frames.csv", len(est)),
-        seconds=_seconds_column(results_dir / "frames.csv", len(est)),
+        updates=None if updated is None else updated == 1.0,
+        seconds=_frames_column(results_dir / "frames.csv", "seconds", len(est)),
     )
     shift_event_frames(metrics, first)
     metrics["first_frame"] = first
@@ -273,34 +274,18 @@ def evaluate_results(results_dir, gt_path, *, check_every: int = 100, success_m:
     return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in metrics.items()}
 
 
-def _updated_column(path: Path, n: int) -> np.ndarray | None:
-    """The ``updated`` column of a results folder's ``frames.csv`` (the frames at which the filter weighed
-    a scan), when it has one for each of the ``n`` frames; else None."""
+def _frames_column(path: Path, name: str, n: int) -> np.ndarray | None:
+    """Column ``name`` of a results folder's ``frames.csv`` as floats (``updated``: the frames at which the
+    filter weighed a scan, 1/0; ``seconds``: each frame's compute), when it has one for each of the ``n``
+    frames; else None."""
     try:
         lines = path.read_text().splitlines()
     except OSError:
         return None
     cols = lines[0].split(",") if lines else []
-    if "updated" not in cols or len(lines) != n + 1:
+    if name not in cols or len(lines) != n + 1:
         return None
-    at = cols.index("updated")
-    try:
-        return np.array([line.split(",")[at] == "1" for line in lines[1:]], bool)
-    except IndexError:
-        return None
-
-
-def _seconds_column(path: Path, n: int) -> np.ndarray | None:
-    """The ``seconds`` column of a results folder's ``frames.csv`` (each frame's compute), when it has one
-    for each of the ``n`` frames; else None."""
-    try:
-        lines = path.read_text().splitlines()
-    except OSError:
-        return None
-    cols = lines[0].split(",") if lines else []
-    if "seconds" not in cols or len(lines) != n + 1:
-        return None
-    at = cols.index("seconds")
+    at = cols.index(name)
     try:
         return np.array([float(line.split(",")[at]) for line in lines[1:]])
     except (IndexError, ValueError):
