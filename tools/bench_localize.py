@@ -9,8 +9,8 @@ Embree ``RaycastingScene`` in the same run as the peer.
 * after convergence: pose tracking from the first true pose with ``--few`` particles (default 100) over
   ``--frames`` frames; per frame the whole step (scan read, de-skew, motion, weighting, resampling, the
   scan-to-mesh refinement and the odometry calibration) is timed; the median gives the frame rate; the
-  weighting and the refinement alone are timed on every 10th frame. Once per converged rendering
-  (``--converged-rendering``, default ``exact,planar``: every particle's rays cast, or the cloud rendered
+  weighting and the refinement alone are timed on every 10th frame. Once per rendering (``--rendering``,
+  ``observation.rendering``, default ``exact,planar``: every particle's rays cast, or the cloud rendered
   about its estimate), from the same start and seed, so their ratio and their tracking errors compare.
 * before convergence: ``--many`` particles (default 10,000) spread over the map, weighted on ``--global-
   frames`` frames; median seconds per update (the first update of a search: the place prior's match of
@@ -20,8 +20,12 @@ Embree ``RaycastingScene`` in the same run as the peer.
   hypotheses thin out), the frame it converged at and its error then, and the first correct fix (a
   convergence within 5 m): the seconds of compute through its frame and the metres driven; the search's
   filter is built anew, and its start-up (the filter, the place priors loaded, before frame 0) is timed.
-  Once per search method (``--search``, default ``hypotheses,prior``: the particle search and the prior
-  search), in the same run.
+  Then ``--probation-frames`` more frames (default: the recovery's probation and 5 more), in which each
+  update after a convergence asks the place prior for a second opinion: their median and largest seconds,
+  and the worst frame of the whole global localization (search and probation). Once per search method
+  (``--search``, default ``hypotheses,prior``: the particle search and the prior search) and rendering
+  (``--rendering``: the local grids of the search, the challenge and the second opinion rendered exactly
+  or planar), in the same run.
 * the place prior: rendered anew for the map (seconds), its size in memory and on disk, per km² of the
   drivable area it covers; the same for a beam prior (the prior of a sensor that sees nothing above the
   parked cars: one beam, ``--beam-deg``, default the MQ-8's top beam, from the sensor's height).
@@ -77,9 +81,15 @@ def main() -> None:
         help="convergence.method values whose global search is measured from frame 0, comma-separated",
     )
     ap.add_argument(
-        "--converged-rendering",
+        "--rendering",
         default="exact,planar",
-        help="observation.converged_rendering values whose tracking is measured, comma-separated",
+        help="observation.rendering values whose tracking and searches are measured, comma-separated",
+    )
+    ap.add_argument(
+        "--probation-frames",
+        type=int,
+        default=None,
+        help="frames measured after a search's convergence (default: recovery.probation_updates + 5)",
     )
     ap.add_argument("--json", help="also write the figures here")
     ap.add_argument(
@@ -113,7 +123,7 @@ def main() -> None:
     # --- after convergence: whole steps with few particles, each converged rendering ---------------------
     def tracking(rendering: str) -> dict:
         s = LocalizerSettings()
-        s.observation.converged_rendering = rendering
+        s.observation.rendering = rendering
         loc = build_localizer(
             mesh_map, s, rng=np.random.default_rng(args.seed), device=args.device, sensor_height_m=1.73
         )
@@ -181,7 +191,7 @@ def main() -> None:
             "refused_refinements": loc.refused_refinements,
         }
 
-    renderings = [m.strip() for m in args.converged_rendering.split(",") if m.strip()]
+    renderings = [m.strip() for m in args.rendering.split(",") if m.strip()]
     tracked = {m: tracking(m) for m in renderings}
     after = tracked[renderings[0]]
 
@@ -217,9 +227,14 @@ def main() -> None:
     }
 
     # --- a whole global search from frame 0, each search method (a new filter: its start-up timed) ---------
-    def global_search(method: str) -> dict:
+    probation_frames = (
+        settings.recovery.probation_updates + 5 if args.probation_frames is None else args.probation_frames
+    )
+
+    def global_search(method: str, rendering: str) -> dict:
         s = LocalizerSettings()
         s.convergence.method = method
+        s.observation.rendering = rendering
         t0 = time.perf_counter()
         loc = build_localizer(
             mesh_map, s, rng=np.random.default_rng(args.seed), device=args.device, sensor_height_m=1.73
@@ -227,10 +242,11 @@ def main() -> None:
         loc.spread(args.many)
         loc.warm_up(seq.scan(0), tuple(seq.imu_roll_pitch[0]) if seq.imu_roll_pitch is not None else None)
         startup_s = time.perf_counter() - t0
-        frame_s, conv_at, conv_err, fix_s, fix_m = [], None, None, None, None
+        frame_s, after_s, conv_at, conv_err, fix_s, fix_m = [], [], None, None, None, None
         for i in range(min(args.search_frames, len(seq))):
             delta = se2_between(odo[i - 1], odo[i]) if i else np.zeros(3)
             rp = tuple(seq.imu_roll_pitch[i]) if seq.imu_roll_pitch is not None else None
+            converged_before = loc.converged
             info = loc.step(
                 delta,
                 seq.scan(i),
@@ -238,27 +254,47 @@ def main() -> None:
                 frame_period_s=period,
                 roll_pitch=rp,
             )
+            if converged_before:  # after the convergence: the probation's frames
+                after_s.append(info.seconds)
+                if len(after_s) >= probation_frames:
+                    break
+                continue
             frame_s.append(info.seconds)  # the converging frame is the search's last
             if info.converged:
                 conv_at, conv_err = i, float(np.hypot(*(info.estimate[:2] - truth[i, :2])))
                 if conv_err <= 5.0:  # the first correct fix: the compute through this frame, metres driven
                     fix_s = sum(frame_s)
                     fix_m = float(np.hypot(*np.diff(truth[: i + 1, :2], axis=0).T).sum())
-                break
+                if probation_frames <= 0:
+                    break
+        every = frame_s + after_s
         return {
             "method": method,
+            "rendering": rendering,
             "particles": args.many if method != "prior" else None,
             "seconds_per_frame_median": statistics.median(frame_s) if frame_s else None,
             "seconds_per_frame_max": max(frame_s) if frame_s else None,
+            "search_frame_count": len(frame_s),
             "frames_over_100ms": sum(t > 0.1 for t in frame_s),
             "converged_frame": conv_at,
             "error_at_convergence_m": conv_err,
             "first_fix_seconds": fix_s,
             "first_fix_driven_m": fix_m,
             "startup_seconds": startup_s,
+            "probation_frames": len(after_s),
+            "probation_seconds_median": statistics.median(after_s) if after_s else None,
+            "probation_seconds_max": max(after_s) if after_s else None,
+            "worst_frame_seconds": max(every) if every else None,
+            "all_frames_over_100ms": sum(t > 0.1 for t in every),
+            "recoveries": loc.recoveries,
         }
 
-    searches = {m: global_search(m) for m in (x.strip() for x in args.search.split(",")) if m}
+    searches = {
+        f"{m}/{r}": global_search(m, r)
+        for m in (x.strip() for x in args.search.split(","))
+        if m
+        for r in renderings
+    }
     search = next(iter(searches.values()))
 
     # --- the place prior: rendered anew ---------------------------------------------------------------------
@@ -337,7 +373,7 @@ def main() -> None:
     for g in searches.values():
         who = f"{args.many:,} particles" if g["particles"] else "the place prior's hypotheses"
         print(
-            f"global search, {g['method']} ({who}, from frame 0): "
+            f"global search, {g['method']}, {g['rendering']} rendering ({who}, from frame 0): "
             + (
                 f"{g['seconds_per_frame_median']:.3f} s per frame median, {g['seconds_per_frame_max']:.3f} s "
                 f"at most ({g['frames_over_100ms']} frames over 100 ms); "
@@ -357,6 +393,14 @@ def main() -> None:
             )
             + f"; start-up (filter, place priors) {g['startup_seconds']:.2f} s"
         )
+        if g["probation_frames"]:
+            n_all = g["search_frame_count"] + g["probation_frames"]
+            print(
+                f"  then {g['probation_frames']} frames of the probation: "
+                f"{g['probation_seconds_median']:.3f} s per frame median, {g['probation_seconds_max']:.3f} s "
+                f"at most; the whole global localization's worst frame {g['worst_frame_seconds']:.3f} s "
+                f"({g['all_frames_over_100ms']} of {n_all} frames over 100 ms), {g['recoveries']} recoveries"
+            )
     print(
         f"place prior: {prior_fig['cells']:,} cells of {params.cell_m:g} m ({area_km2:.3f} km2 drivable), "
         f"rendered in {prior_fig['build_s']:.1f} s ({prior_fig['build_s_per_km2']:.0f} s per km2), "

@@ -237,7 +237,7 @@ def build_localizer(
         update_distance_m=m.update_distance_m,
         update_angle_deg=m.update_angle_deg,
         level_with_imu=o.level_with_imu,
-        converged_rendering=o.converged_rendering,
+        rendering=o.rendering,
         global_count=p.global_count,
         converged_count=p.converged_count,
         tracking_count=p.tracking_count,

@@ -165,7 +165,7 @@ class MonteCarloLocalizer(SearchMixin, PriorSearchMixin, RecoveryMixin):
         update_distance_m: float,
         update_angle_deg: float,
         level_with_imu: bool,
-        converged_rendering: str,
+        rendering: str,
         # particles
         global_count: int,
         converged_count: int,
@@ -249,7 +249,7 @@ class MonteCarloLocalizer(SearchMixin, PriorSearchMixin, RecoveryMixin):
         self.update_distance_m = float(update_distance_m)
         self.update_angle = math.radians(update_angle_deg)
         self.level_with_imu = bool(level_with_imu)
-        self.converged_rendering = converged_rendering
+        self.rendering = rendering
         self.global_count = int(global_count)
         self.converged_count = int(converged_count)
         self.tracking_count = int(tracking_count)
@@ -731,11 +731,11 @@ class MonteCarloLocalizer(SearchMixin, PriorSearchMixin, RecoveryMixin):
         return out
 
     def _planar_about(self) -> np.ndarray | None:
-        """The pose a converged cloud is rendered about (``observation.converged_rendering: planar``):
+        """The pose a converged cloud is rendered about (``observation.rendering: planar``):
         ``(x, y, yaw, sensor_z)`` of the estimate, when every particle lies within
         :data:`~rangemcl.localization.renderer.PLANAR_WITHIN_M` and ``PLANAR_WITHIN_DEG`` of it; else None
         (rendered exactly)."""
-        if not self.converged or self.converged_rendering != "planar" or not len(self.particles):
+        if not self.converged or self.rendering != "planar" or not len(self.particles):
             return None
         est = self.last_estimate
         p = self.particles

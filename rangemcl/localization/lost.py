@@ -235,6 +235,7 @@ def second_opinion(
     rival: np.ndarray | None = None,
     rival_m: float = 5.0,
     rival_deg: float = 20.0,
+    centres: np.ndarray | None = None,
 ) -> Opinion:
     """Score ``candidates`` ``(M, 3)`` with ``score(particles) -> (badness (M,), inliers (M,) or None)``
     and decide whether the best of those farther than ``min_distance_m`` from ``estimate`` explains the
@@ -250,13 +251,18 @@ def second_opinion(
     ``rival`` ``(3,)`` (the last better place, moved with the odometry: :class:`LostDetector`), the
     candidates within ``rival_m`` and ``rival_deg`` of it are judged first, and the best of them is the
     opinion when it is better: a filter at a wrong place can meet the true place at one update and a
-    look-alike with a few more inliers at the next, and the count of confirmations would begin again."""
+    look-alike with a few more inliers at the next, and the count of confirmations would begin again.
+    With ``centres`` ``(M, 3)`` (each candidate's place), ``score`` is called as ``score(particles,
+    centres)``: a scorer that renders planar renders each candidate about a pose near its place."""
     cand = np.asarray(candidates, np.float64).reshape(-1, 3)
     far = np.hypot(cand[:, 0] - estimate[0], cand[:, 1] - estimate[1]) > min_distance_m
     cand = cand[far]
     if len(cand) == 0:
         return Opinion(False, np.asarray(estimate, np.float64), math.inf, math.nan, 0)
-    bad, inl = score(cand)
+    if centres is not None:
+        bad, inl = score(cand, np.asarray(centres, np.float64).reshape(-1, 3)[far])
+    else:
+        bad, inl = score(cand)
     bad = np.asarray(bad, np.float64)
     if look is not None and polish is not None and polish.places > 0:
         order = np.lexsort((bad, -np.asarray(inl))) if inl is not None else np.argsort(bad, kind="stable")

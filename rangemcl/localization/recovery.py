@@ -131,12 +131,27 @@ class RecoveryMixin:
         cand = candidate_particles(
             xy, yaw, lost.opinion_per_place, prior.params.cell_m, self.prior_yaw_sigma, self.rng
         )
+        centres = np.repeat(np.column_stack([xy, yaw]), len(cand) // max(len(xy), 1), axis=0)
         polish = Polish(lost.polish_places, lost.polish_per_place, *lost.polish_sigma, self.rng)
         if rival is not None and polish.places > 0:  # the last better place, moved with the odometry
-            cand = np.vstack([cand, rival[None], polish.around(rival[None])])
+            near_rival = np.vstack([rival[None], polish.around(rival[None])])
+            cand = np.vstack([cand, near_rival])
+            centres = np.vstack([centres, np.repeat(rival[None], len(near_rival), axis=0)])
 
-        def score(p: np.ndarray):
-            _loglik, bad = self.scorer.score(sub, p, self.sensor_z(p[:, :2]))
+        def score(p: np.ndarray, around: np.ndarray | None = None):
+            """Badness and inlier shares of ``p``. Rendered planar (``observation.rendering``): the
+            candidates each about its place ``around`` (a prior's cell: within a metre or so, as the prior
+            search renders a newborn's coarse grid about it), the filter's own cloud about references near
+            its estimate."""
+            if around is None:
+                about = self._planar_grid_refs(p, self.last_estimate[None], np.zeros(len(p), np.int64))
+            elif self.rendering == "planar":
+                places, of = np.unique(around, axis=0, return_inverse=True)
+                refs = np.column_stack([places, self.sensor_z(places[:, :2])])
+                about = dict(about=refs, about_of=of.reshape(-1).astype(np.int32))
+            else:
+                about = {}
+            _loglik, bad = self.scorer.score(sub, p, self.sensor_z(p[:, :2]), **about)
             return bad, self.scorer.last_inliers
 
         own_bad, own_inl = score(self.particles)
@@ -155,6 +170,7 @@ class RecoveryMixin:
             look=lambda seeds: self._grid_look(sub, seeds),
             rival=rival,
             rival_m=lost.consistent_m,
+            centres=centres,
         )
         if (
             found.better
@@ -203,7 +219,9 @@ class RecoveryMixin:
             sub = None if entries[i - 1][0] is None else self._far_rays(entries[i - 1][0])
             if sub is None:
                 continue
-            self.scorer.score(sub, p, self.sensor_z(p[:, :2]))
+            # (planar: about the first pose, the place that Polish.around spreads around)
+            about = self._planar_grid_refs(p, p[:1], np.zeros(len(p), np.int64))
+            self.scorer.score(sub, p, self.sensor_z(p[:, :2]), **about)
             total += self.scorer.last_inliers  # (asked only of models with an inlier share)
             count += 1
         if count == 0 or count < 0.5 * self.lost.history_updates:

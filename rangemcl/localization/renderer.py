@@ -50,6 +50,47 @@ PLANAR_WITHIN_M = 1.0
 PLANAR_WITHIN_DEG = 3.0
 
 
+def planar_references(poses, centres, of) -> tuple[np.ndarray, np.ndarray]:
+    """References for rendering ``poses`` ``(N, 3)`` planar (:meth:`ParticleRenderer.planar_scores`), each
+    pose about a reference near its centre ``centres[of]`` (``centres`` ``(K, 3)``, ``of`` ``(N,)``: a
+    local grid's seed, a place): the pose's offset from its centre, in the centre's frame, is binned
+    (forward and left in bins of :data:`PLANAR_WITHIN_M` x sqrt(2), yaw in bins of 2 x
+    :data:`PLANAR_WITHIN_DEG`, the middle bin centred on the centre), and each occupied bin's middle is a
+    reference, so that every pose lies within ``PLANAR_WITHIN_M`` and ``PLANAR_WITHIN_DEG`` of its own.
+    A grid of +-2 m and +-8 degrees around a seed needs 27 references. Returns the references ``(M, 3)``
+    and each pose's reference index ``(N,)`` (int32)."""
+    p = np.asarray(poses, np.float64).reshape(-1, 3)
+    c = np.asarray(centres, np.float64).reshape(-1, 3)
+    of = np.asarray(of, np.int64).reshape(-1)
+    if len(of) != len(p):
+        raise InputError(f"planar references: {len(of)} centre indices for {len(p)} poses")
+    step_xy, step_yaw = PLANAR_WITHIN_M * np.sqrt(2.0), np.radians(2.0 * PLANAR_WITHIN_DEG)
+    cc = c[of]
+    cos, sin = np.cos(cc[:, 2]), np.sin(cc[:, 2])
+    dx, dy = p[:, 0] - cc[:, 0], p[:, 1] - cc[:, 1]
+    dyaw = np.angle(np.exp(1j * (p[:, 2] - cc[:, 2])))
+    keys = np.column_stack(
+        [
+            of,
+            np.round((cos * dx + sin * dy) / step_xy),
+            np.round((-sin * dx + cos * dy) / step_xy),
+            np.round(dyaw / step_yaw),
+        ]
+    ).astype(np.int64)
+    uniq, ref_of = np.unique(keys, axis=0, return_inverse=True)
+    base = c[uniq[:, 0]]
+    fwd, left = uniq[:, 1] * step_xy, uniq[:, 2] * step_xy
+    bc, bs = np.cos(base[:, 2]), np.sin(base[:, 2])
+    refs = np.column_stack(
+        [
+            base[:, 0] + bc * fwd - bs * left,
+            base[:, 1] + bs * fwd + bc * left,
+            np.angle(np.exp(1j * (base[:, 2] + uniq[:, 3] * step_yaw))),
+        ]
+    )
+    return refs, ref_of.reshape(-1).astype(np.int32)
+
+
 @wp.func
 def ray_cost(
     measured: float,

@@ -53,6 +53,7 @@ from rangemcl.localization.particles import (
     pose_estimate,
     resample_roughened,
 )
+from rangemcl.localization.renderer import planar_references
 from rangemcl.localization.scan_prep import ScanRays
 from rangemcl.se2 import se2_compose, se2_inverse, wrap_angle
 
@@ -182,10 +183,20 @@ class SearchMixin:
         p[:, :, 1] = seeds[:, None, 1] + s * g[None, :, 0] + c * g[None, :, 1]
         p[:, :, 2] = wrap_angle(seeds[:, None, 2] + g[None, :, 2])
         flat = p.reshape(-1, 3)
-        ll, bad = self.scorer.score(rays, flat, self.sensor_z(flat[:, :2]))
+        about = self._planar_grid_refs(flat, seeds, np.repeat(np.arange(len(seeds)), len(g)))
+        ll, bad = self.scorer.score(rays, flat, self.sensor_z(flat[:, :2]), **about)
         inl = self.scorer.last_inliers
         shape = (len(seeds), len(g))
         return p, ll.reshape(shape), bad.reshape(shape), None if inl is None else inl.reshape(shape)
+
+    def _planar_grid_refs(self, poses: np.ndarray, centres: np.ndarray, of: np.ndarray) -> dict:
+        """The scorer's ``about`` and ``about_of`` for ``poses`` ``(N, 3)`` around ``centres[of]`` with
+        ``observation.rendering: planar`` (:func:`~rangemcl.localization.renderer.planar_references`: each
+        pose about a reference within a metre and a few degrees of it); ``{}`` (exact) otherwise."""
+        if self.rendering != "planar" or len(poses) == 0:
+            return {}
+        refs, ref_of = planar_references(poses, centres, of)
+        return dict(about=np.column_stack([refs, self.sensor_z(refs[:, :2])]), about_of=ref_of)
 
     # --- one update of the search -------------------------------------------------------------------------
 

@@ -191,13 +191,16 @@ class ObservationSettings:
     has a surface within `cap_m` of its measured point: the scan saw past an object gone since the mapping
     drive to what the map holds behind it. Otherwise it passed through the map into nothing the map
     knows, which a removed object does not explain, and costs `cap_m`. One more ray cast per such ray."""
-    converged_rendering: str = "exact"
-    """How a converged filter's particles are rendered: `exact` (every particle's rays cast through the
-    map) or `planar` (the rays cast once, from the estimate; each particle's rendered range is where its
-    own ray meets the plane of the surface the estimate's ray met). A converged cloud lies within
-    decimetres of its estimate, where almost every ray meets the same surface, so `planar` ranks the
-    particles nearly as `exact` does for the cost of one particle's rays; a cloud spread wider than 1 m or
-    3 degrees from its estimate is rendered exactly. The searching filter always renders exactly."""
+    rendering: str = "exact"
+    """How the filter renders many poses that lie close around a few: `exact` (every pose's rays cast
+    through the map) or `planar` (the rays cast once from a reference pose; each pose's rendered range is
+    where its own ray meets the plane of the surface the reference's ray met). `planar` renders a converged
+    cloud about its estimate, and each local grid (the search's polish around its hypotheses, the
+    challenge's, the second opinion's look around a better place and its look at the past) about
+    references within 1 m and 3 degrees of its poses (27 for a grid of +-2 m and +-8 degrees). Within a
+    metre and a few degrees almost every ray meets the same surface, so `planar` ranks the poses nearly as
+    `exact` does for a fraction of the rays; a converged cloud spread wider than 1 m or 3 degrees from its
+    estimate is rendered exactly, and so is the search's cloud of particles spread over the map."""
     min_range_m: float = 2.0
     """Returns closer than this, in m, are ignored (the car itself)."""
     max_range_m: float = 40.0
@@ -559,7 +562,7 @@ class LocalizerSettings:
         choices = {
             "observation.model": MODEL_NAMES,
             "observation.ray_sampling": RAY_SAMPLINGS,
-            "observation.converged_rendering": ("exact", "planar"),
+            "observation.rendering": ("exact", "planar"),
             "motion.calibration": ("estimator", "particles"),
             "convergence.method": ("hypotheses", "tiles", "prior"),
             "recovery.signal": ("inliers", "residual"),

@@ -452,18 +452,21 @@ def test_a_sparse_sensor_waits_for_the_one_distinct_street_among_k_identical_one
     assert abs(est[1]) < 1.0 and abs(est[0] - path[converged_at, 0]) < 1.0, (est, path[converged_at])
 
 
-def test_a_wrong_convergence_planted_in_a_run_is_caught_within_10_frames():
+@pytest.mark.parametrize("rendering", ["exact", "planar"])
+def test_a_wrong_convergence_planted_in_a_run_is_caught_within_10_frames(rendering):
     """Two identical streets, the car's with the marker; an 8-beam sensor below the horizon. The filter
     tracks the car past the marker's approach, then its cloud is planted on the twin street, at the same
     place along it, as if a search had converged there (the probation starts). The twin explains every
     scan but the marker's rays as well as the true place does, so the signal watch sees little; the
     probation's challenge judges the prior's places over the recent scans, where the marker speaks for
-    the true street: the filter must give up the twin within 10 frames."""
+    the true street: the filter must give up the twin within 10 frames; also with the challenge's grids
+    and the second opinion rendered planar (`observation.rendering: planar`)."""
     caster, m = k_streets(2)
     geo = RangeImageGeometry.for_spec(load_spec("mq-8").with_columns(360))
     path = np.column_stack([np.arange(0.0, 140.0, 0.8), np.zeros(175), np.zeros(175)])
     s = twin_settings()
     s.convergence.challenge_top = 100  # configs/challenge.yaml
+    s.observation.rendering = rendering
     loc = build_localizer(m, s, seed=2, caster=caster)
     loc.start_at(path[50])
     for i in range(51, 100):  # x = 40 .. 79 m: the marker (x = 95 m) comes into view

@@ -126,7 +126,7 @@ def test_tracking_follows_and_recovers_after_a_teleport(world, rendering):
     def truth_at(k):
         return path[k] if k < jump else other[k - jump] + offset
 
-    s = small_settings(converged_rendering=rendering)
+    s = small_settings(rendering=rendering)
     loc = build_localizer(m, s, seed=3, caster=caster)
     loc.start_at(path[0])
     assert loc.converged and len(loc.particles) == s.particles.tracking_count

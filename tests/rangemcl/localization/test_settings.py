@@ -88,7 +88,7 @@ def _set(s: LocalizerSettings, key: str, value) -> LocalizerSettings:
 _CHOICES = {  # another valid value of each key that names a method
     "observation.model": "overlap",
     "observation.ray_sampling": "points",
-    "observation.converged_rendering": "planar",
+    "observation.rendering": "planar",
     "convergence.method": "tiles",
     "recovery.signal": "residual",
     "motion.calibration": "particles",
