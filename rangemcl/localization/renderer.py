@@ -81,7 +81,7 @@ def planar_references(poses, centres, of) -> tuple[np.ndarray, np.ndarray]:
     span = (bins.max(axis=0) - lo + 1) if len(bins) else np.ones(3, np.int64)
     b = bins - lo
     key = ((of * span[0] + b[:, 0]) * span[1] + b[:, 1]) * span[2] + b[:, 2]
-    uniq, first, ref_of = np.unique(key, return_index=True, return_inverse=True)
+    _keys, first, ref_of = np.unique(key, return_index=True, return_inverse=True)
     base = c[of[first]]
     fwd, left = bins[first, 0] * step_xy, bins[first, 1] * step_xy
     bc, bs = np.cos(base[:, 2]), np.sin(base[:, 2])
@@ -148,29 +148,85 @@ def ray_cost(
 
 
 @wp.func
+def ray_in_world(p: wp.vec3, z: float, d: wp.vec3, o: wp.vec3):
+    """A particle's ray in the world: ``p`` (x, y, yaw) at sensor height ``z``, the ray's sensor-frame
+    direction ``d`` and origin offset ``o``. Returns its origin and direction."""
+    c = wp.cos(p[2])
+    s = wp.sin(p[2])
+    dw = wp.vec3(c * d[0] - s * d[1], s * d[0] + c * d[1], d[2])
+    ow = wp.vec3(p[0], p[1], z) + wp.vec3(c * o[0] - s * o[1], s * o[0] + c * o[1], o[2])
+    return ow, dw
+
+
+@wp.func
+def add_ray(
+    k: int,
+    measured: float,
+    t: float,
+    hit: int,
+    d_z: float,  # the ray's sensor-frame direction's z ...
+    o_z: float,  # ... and origin's
+    structure: float,
+    behind: int,
+    margin: float,
+    cap: float,
+    cap_beyond: float,
+    cap_short: float,
+    change_top: float,
+    explain_beyond: int,
+    tau: float,
+    hist_top: float,
+    out_hist: wp.array2d[float],
+    sums: wp.vec3,  # (total cost, agree, beyond)
+    s_sums: wp.vec4,  # the structure rays' (agree, count, far, gone)
+):
+    """One ray rendered at ``t`` (``hit``: it met the map) costed (:func:`ray_cost`) and added to the
+    particle's sums (and to its histogram, when ``out_hist`` has columns). Returns the sums."""
+    cost, a, b, far, gone = ray_cost(
+        measured,
+        t,
+        hit,
+        o_z + d_z * measured,
+        o_z + d_z * t,
+        structure,
+        margin,
+        cap,
+        cap_beyond,
+        cap_short,
+        change_top,
+        explain_beyond,
+        behind,
+        tau,
+    )
+    bins = out_hist.shape[1]
+    if hit != 0 and bins > 0 and t < hist_top:
+        bb = wp.min(int(t / hist_top * float(bins)), bins - 1)
+        out_hist[k, bb] = out_hist[k, bb] + 1.0
+    return (
+        wp.vec3(sums[0] + cost, sums[1] + a, sums[2] + b),
+        wp.vec4(s_sums[0] + a * structure, s_sums[1] + structure, s_sums[2] + far, s_sums[3] + gone),
+    )
+
+
+@wp.func
 def write_scores(
     k: int,
     n_rays: int,
-    total: float,
-    agree: float,
-    beyond: float,
-    s_agree: float,
-    s_count: float,
-    s_far: float,
-    s_gone: float,
+    sums: wp.vec3,
+    s_sums: wp.vec4,
     out_mean: wp.array[float],
     out_agree: wp.array[float],
     out_beyond: wp.array[float],
     out_structure: wp.array[float],
 ):
-    out_mean[k] = total / float(n_rays)
-    out_agree[k] = agree / float(n_rays)
-    out_beyond[k] = beyond / float(n_rays)
+    out_mean[k] = sums[0] / float(n_rays)
+    out_agree[k] = sums[1] / float(n_rays)
+    out_beyond[k] = sums[2] / float(n_rays)
     # structure rays that agree, among those within cap of the map's surface: the ones far beyond it
     # (objects removed since the map was made) left out, and those far short of it (objects added, or a
     # wrong pose) left out too but at most half of the rest (at a wrong pose most of them are far short)
-    rest = s_count - s_gone
-    out_structure[k] = s_agree / wp.max(wp.max(rest - s_far, 0.5 * rest), 1.0)
+    rest = s_sums[1] - s_sums[3]
+    out_structure[k] = s_sums[0] / wp.max(wp.max(rest - s_sums[2], 0.5 * rest), 1.0)
 
 
 @wp.kernel
@@ -201,77 +257,28 @@ def particle_residual_kernel(
     out_hist: wp.array2d[float],  # (N, bins); (1, 0) when no histogram is wanted
 ):
     k = wp.tid() + offset
-    p = particles[k]
-    c = wp.cos(p[2])
-    s = wp.sin(p[2])
-    base = wp.vec3(p[0], p[1], sensor_z[k])
-    total = float(0.0)
-    agree = float(0.0)
-    beyond = float(0.0)
-    s_agree = float(0.0)
-    s_count = float(0.0)
-    s_far = float(0.0)  # structure rays far short of the map's surface (or meeting nothing of it)
-    s_gone = float(0.0)  # structure rays far beyond it
-    bins = out_hist.shape[1]
+    sums = wp.vec3(0.0)
+    s_sums = wp.vec4(0.0)  # structure rays: agree, count, far short of the map (or missing it), far beyond
     for i in range(directions.shape[0]):
         d = directions[i]
         o = origins[i]
-        dw = wp.vec3(c * d[0] - s * d[1], s * d[0] + c * d[1], d[2])
-        ow = base + wp.vec3(c * o[0] - s * o[1], s * o[0] + c * o[1], o[2])
-        limit = measured[i] + margin
-        t, m, _face, _normal = closest_hit(meshes, inv_poses, moved, boxes, ow, dw, limit)
+        ow, dw = ray_in_world(particles[k], sensor_z[k], d, o)
+        t, m, _face, _normal = closest_hit(meshes, inv_poses, moved, boxes, ow, dw, measured[i] + margin)
         hit = int(0)
         if m >= 0:
             hit = 1
-        rendered_z = o[2] + d[2] * t
         behind = int(1)
-        if explain_beyond != 0 and hit != 0 and measured[i] - t > cap and rendered_z < change_top:
+        if explain_beyond != 0 and hit != 0 and measured[i] - t > cap and o[2] + d[2] * t < change_top:
             _t2, m2, _f2, _n2 = closest_hit(
                 meshes, inv_poses, moved, boxes, ow + dw * (measured[i] - cap), dw, 2.0 * cap
             )
             if m2 < 0:
                 behind = 0
-        cost, a, b, far, gone = ray_cost(
-            measured[i],
-            t,
-            hit,
-            o[2] + d[2] * measured[i],
-            rendered_z,
-            structure[i],
-            margin,
-            cap,
-            cap_beyond,
-            cap_short,
-            change_top,
-            explain_beyond,
-            behind,
-            tau,
-        )
-        if hit != 0 and bins > 0 and t < hist_top:
-            bb = wp.min(int(t / hist_top * float(bins)), bins - 1)
-            out_hist[k, bb] = out_hist[k, bb] + 1.0
-        total += cost
-        agree += a
-        beyond += b
-        s_agree += a * structure[i]
-        s_count += structure[i]
-        s_far += far
-        s_gone += gone
-    write_scores(
-        k,
-        directions.shape[0],
-        total,
-        agree,
-        beyond,
-        s_agree,
-        s_count,
-        s_far,
-        s_gone,
-        out_mean,
-        out_agree,
-        out_beyond,
-        out_structure,
-    )
+        sums, s_sums = add_ray(
+            k, measured[i], t, hit, d[2], o[2], structure[i], behind, margin, cap, cap_beyond, cap_short,
+            change_top, explain_beyond, tau, hist_top, out_hist, sums, s_sums,
+        )  # fmt: skip
+    write_scores(k, directions.shape[0], sums, s_sums, out_mean, out_agree, out_beyond, out_structure)
 
 
 @wp.kernel
@@ -305,25 +312,14 @@ def planar_residual_kernel(
     """The residual kernel's scores with each particle's rendered range taken where its ray meets the
     plane of the surface that the reference pose's ray met (no ray cast)."""
     k = wp.tid() + offset
-    p = particles[k]
-    c = wp.cos(p[2])
-    s = wp.sin(p[2])
-    base = wp.vec3(p[0], p[1], sensor_z[k])
-    total = float(0.0)
-    agree = float(0.0)
-    beyond = float(0.0)
-    s_agree = float(0.0)
-    s_count = float(0.0)
-    s_far = float(0.0)
-    s_gone = float(0.0)
-    bins = out_hist.shape[1]
+    sums = wp.vec3(0.0)
+    s_sums = wp.vec4(0.0)
     n_rays = directions.shape[0]
     first = ref_of[k] * n_rays
     for i in range(n_rays):
         d = directions[i]
         o = origins[i]
-        dw = wp.vec3(c * d[0] - s * d[1], s * d[0] + c * d[1], d[2])
-        ow = base + wp.vec3(c * o[0] - s * o[1], s * o[0] + c * o[1], o[2])
+        ow, dw = ray_in_world(particles[k], sensor_z[k], d, o)
         limit = measured[i] + margin
         t = limit
         hit = int(0)
@@ -336,47 +332,11 @@ def planar_residual_kernel(
                 if tt > 0.0 and tt < limit:
                     t = tt
                     hit = 1
-        cost, a, b, far, gone = ray_cost(
-            measured[i],
-            t,
-            hit,
-            o[2] + d[2] * measured[i],
-            o[2] + d[2] * t,
-            structure[i],
-            margin,
-            cap,
-            cap_beyond,
-            cap_short,
-            change_top,
-            explain_beyond,
-            ref_behind[j],
-            tau,
-        )
-        if hit != 0 and bins > 0 and t < hist_top:
-            bb = wp.min(int(t / hist_top * float(bins)), bins - 1)
-            out_hist[k, bb] = out_hist[k, bb] + 1.0
-        total += cost
-        agree += a
-        beyond += b
-        s_agree += a * structure[i]
-        s_count += structure[i]
-        s_far += far
-        s_gone += gone
-    write_scores(
-        k,
-        directions.shape[0],
-        total,
-        agree,
-        beyond,
-        s_agree,
-        s_count,
-        s_far,
-        s_gone,
-        out_mean,
-        out_agree,
-        out_beyond,
-        out_structure,
-    )
+        sums, s_sums = add_ray(
+            k, measured[i], t, hit, d[2], o[2], structure[i], ref_behind[j], margin, cap, cap_beyond,
+            cap_short, change_top, explain_beyond, tau, hist_top, out_hist, sums, s_sums,
+        )  # fmt: skip
+    write_scores(k, n_rays, sums, s_sums, out_mean, out_agree, out_beyond, out_structure)
 
 
 class ParticleRenderer:
