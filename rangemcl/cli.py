@@ -679,6 +679,12 @@ def localize(
         help="Continue the interrupted run in OUT from its last checkpoint (same command and options; "
         "the results equal an uninterrupted run's).",
     ),
+    realtime: bool = typer.Option(
+        False,
+        help="Replay at the sensor's pace: a scan that arrives (by its stamp) while the localizer still "
+        "works on an earlier one is dropped, its odometry carried on, as on a car (frames.csv: late). "
+        "The results then depend on this machine's speed.",
+    ),
 ) -> None:
     """Localize a sequence in a mesh map (Monte Carlo localization, range-image observation model)."""
     import math
@@ -728,6 +734,7 @@ def localize(
         progress=sys.stderr.isatty(),
         resume=resume,
         map_memory_mb=map_memory,
+        realtime=realtime,
     )
     from rangemcl.common.outdir import RESULT_MARKERS, has_frames, output_folder
 
@@ -764,6 +771,7 @@ def localize(
         + f", {s['recoveries']} recoveries, {s['skipped_scans']} scans without a valid point and "
         f"{s['unreadable_scans']} unreadable scans skipped, "
         + (f"{s['nan_points_dropped']} NaN points dropped, " if s.get("nan_points_dropped") else "")
+        + (f"{s['late_scans']} scans dropped while busy (--realtime), " if realtime else "")
         + f"{s['seconds_total']:.1f} s"
     )
     if s["odometry_source"] != "odometry.txt":

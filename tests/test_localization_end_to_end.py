@@ -57,6 +57,46 @@ def test_tracking_in_a_built_map_against_ground_truth(town):
     assert m["success"] and m["location_rmse_m"] < 0.25 and m["yaw_rmse_deg"] < 1.0
 
 
+def test_realtime_replay_drops_the_scans_that_arrive_while_the_localizer_is_busy(town, monkeypatch):
+    """--realtime with a localizer whose every step takes 0.25 s of a 0.1 s frame period (the steps' timing
+    patched; the filter itself runs): after each scan it takes, the next two arrive while it is busy and are
+    dropped (prediction only, `late` in frames.csv, counted in the summary), the third is taken; the
+    tracking still holds the truth; and a resumed run carries on the pattern."""
+    import csv
+    from dataclasses import replace
+
+    from rangemcl.localization.filter import MonteCarloLocalizer
+
+    step = MonteCarloLocalizer.step
+    calls = {"n": 0, "stop_at": 17}
+
+    def slow(self, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == calls["stop_at"]:  # an interruption (Ctrl-C) at the 17th frame
+            raise KeyboardInterrupt
+        return replace(step(self, *args, **kwargs), seconds=0.25)
+
+    monkeypatch.setattr(MonteCarloLocalizer, "step", slow)
+    out = town / "realtime"
+    opts = RunOptions(mode="tracking", seed=0, threads=2, plots=False, realtime=True, frames=30)
+    with pytest.raises(KeyboardInterrupt):
+        localize_sequence(town / "test_run", town / "map", out, small(), opts)
+    summary = localize_sequence(town / "test_run", town / "map", out, small(), replace(opts, resume=True))
+    assert summary["resumed_at_frames"] == [10]  # the last checkpoint: frames 10-29 again
+    rows = list(csv.DictReader((out / "frames.csv").open()))
+    late = [r["late"] == "1" for r in rows]
+    assert late == [k % 3 != 0 for k in range(30)]
+    assert summary["late_scans"] == 20 and summary["skipped_scans"] == 0
+    assert summary["frames_localized_from_scans"] == 10
+    assert all(r["updated"] == "0" for r, dropped in zip(rows, late, strict=True) if dropped)
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["success"] and m["location_rmse_m"] < 0.25
+    offline = localize_sequence(
+        town / "test_run", town / "map", town / "offline", small(), replace(opts, realtime=False)
+    )
+    assert offline["late_scans"] == 0 and offline["frames_localized_from_scans"] == 30
+
+
 def test_global_localization_in_a_built_map_against_ground_truth(town):
     out = town / "global"
     summary = localize_sequence(

@@ -32,7 +32,7 @@ import math
 import shutil
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -54,7 +54,7 @@ from rangemcl.viz.rerun import RunViewer, check_rrd_path, rerun_module
 FRAME_COLUMNS = (
     "frame,time_s,x,y,yaw,particles,converged,updated,resampled,skipped_scan,recovered,"
     "best_residual_m,seconds,hypotheses,evidence_nats,inliers,vetoed,refined,refine_shift_m,"
-    "odometry_scale,gyro_bias_deg_s,map_tiles,map_left_out,map_coarse,map_mb,map_load_ms"
+    "odometry_scale,gyro_bias_deg_s,map_tiles,map_left_out,map_coarse,map_mb,map_load_ms,late"
 )
 
 
@@ -78,6 +78,9 @@ class RunOptions:
     resume: bool = False  # continue the interrupted run in the results folder (its checkpoint)
     checkpoint_every: int = 10  # frames between two checkpoints of the filter's state
     map_memory_mb: float | None = None  # --map-memory: hold only the tiles near the particles, within this
+    # --realtime: replay at the sensor's pace; a scan that arrives (by its stamp) while the localizer is still
+    # busy with an earlier one is dropped (prediction only, its odometry carried to the next), as on a car
+    realtime: bool = False
 
 
 KISS_ODOMETRY = "odometry_kiss_icp.txt"  # --odometry kiss-icp: the LiDAR poses it gave, in the results
@@ -192,20 +195,21 @@ class FrameLog:
     converged: np.ndarray  # (n,) bool
     scanned: np.ndarray  # (n,) bool: the frame's scan had valid points for the filter to weigh against
     updated: np.ndarray  # (n,) bool: the filter weighed the frame's scan (an update)
+    late: np.ndarray  # (n,) bool: --realtime dropped the frame's scan (the localizer was busy)
     done: int = 0
     interrupted: bool = False
     wall_s: float = 0.0
 
     @classmethod
     def empty(cls, n: int) -> FrameLog:
-        flags = [np.zeros(n, bool) for _ in range(3)]  # converged, scanned, updated
+        flags = [np.zeros(n, bool) for _ in range(4)]  # converged, scanned, updated, late
         return cls(np.zeros((n, 3)), np.zeros(n, np.int64), np.zeros(n), *flags)
 
     def trim(self) -> None:
         k = self.done
         self.estimate, self.particles = self.estimate[:k], self.particles[:k]
         self.seconds, self.converged = self.seconds[:k], self.converged[:k]
-        self.scanned, self.updated = self.scanned[:k], self.updated[:k]
+        self.scanned, self.updated, self.late = self.scanned[:k], self.updated[:k], self.late[:k]
 
 
 class LocalizationPipeline:
@@ -222,6 +226,7 @@ class LocalizationPipeline:
             resamples=0,
             recoveries=0,
             skipped_scans=0,
+            late_scans=0,  # --realtime: scans dropped because the localizer was busy
             unreadable_scans=0,
             nan_points_dropped=0,  # points of a scan that are not finite (NaN, inf): the filter drops them
             scans_with_nan_points=0,
@@ -382,7 +387,8 @@ class LocalizationPipeline:
             }
             | {"odometry_from_poses": opt.odometry_from_poses, "odometry": opt.odometry}
             | ({"bag": asdict(opt.bag)} if opt.bag is not None else {})
-            | ({"map_memory_mb": opt.map_memory_mb} if opt.map_memory_mb is not None else {}),
+            | ({"map_memory_mb": opt.map_memory_mb} if opt.map_memory_mb is not None else {})
+            | ({"realtime": True} if opt.realtime else {}),
         }
         return json.loads(json.dumps(fp))
 
@@ -452,6 +458,7 @@ class LocalizationPipeline:
         clock = time.perf_counter() - getattr(self, "resumed_elapsed_s", 0.0)
         if not k0:
             self.save_checkpoint(0.0)  # from the first frame on, a run can be resumed
+        busy_until = self._busy_until(k0)  # --realtime: the sensor time until which the localizer works
         try:
             for k, i in enumerate(range(first + k0, last), start=k0):
                 delta = se2_between(self.odo[i - 1], self.odo[i]) if i > first else np.zeros(3)
@@ -470,11 +477,23 @@ class LocalizationPipeline:
                 dt = None
                 if i > first:
                     dt = float(seq.times[i] - seq.times[i - 1]) if seq.times is not None else period
+                late = self.opt.realtime and self._stamp(i) < busy_until
                 info = loc.step(
-                    delta, points, fire_time_s=fire, frame_period_s=period, roll_pitch=rp, dt_s=dt
+                    delta,
+                    None if late else points,
+                    fire_time_s=fire,
+                    frame_period_s=period,
+                    roll_pitch=rp,
+                    dt_s=dt,
                 )
+                if late:  # not a scan without points: one the localizer had no time for
+                    info = replace(info, skipped_scan=False)
+                    ev["late_scans"] += 1
+                else:
+                    busy_until = self._stamp(i) + info.seconds
+                log.late[k] = late
                 self._record(k, i, info)
-                log.scanned[k] = self._count_points(points) and not info.skipped_scan
+                log.scanned[k] = not late and self._count_points(points) and not info.skipped_scan
                 if self.viz.enabled:
                     self.viz.frame(
                         i,
@@ -487,7 +506,7 @@ class LocalizationPipeline:
                         particle_z=loc.sensor_z(loc.particles[:, :2]),
                         converged=info.converged,
                     )
-                csv.write(self._csv_line(i, info))
+                csv.write(self._csv_line(i, info, late))
                 csv.flush()
                 log.done = k + 1
                 if log.done % every == 0 and log.done < last - first:
@@ -592,6 +611,7 @@ class LocalizationPipeline:
                 "intervals_left_out": loc.calibrator.rejected,
             },
             "skipped_scans": ev["skipped_scans"],
+            "late_scans": ev.get("late_scans", 0),
             "unreadable_scans": ev["unreadable_scans"],
             "unreadable_scan_errors": ev.get("unreadable_files", [])[:100],
             "nan_points_dropped": ev.get("nan_points_dropped", 0),
@@ -707,16 +727,30 @@ class LocalizationPipeline:
             ev["scans_with_nan_points"] = ev.get("scans_with_nan_points", 0) + 1
         return dropped < len(finite)
 
-    def _csv_line(self, i: int, info) -> str:
-        seq, e = self.seq, info.estimate
-        t = seq.times[i] if seq.times is not None else i * (self.period or 0.1)
+    def _stamp(self, i: int) -> float:
+        """Frame ``i``'s time stamp in s (its index times the frame period where the sequence has none)."""
+        seq = self.seq
+        return float(seq.times[i]) if seq.times is not None else i * (self.period or 0.1)
+
+    def _busy_until(self, k0: int) -> float:
+        """``--realtime``: the sensor time until which the localizer works on the last scan it took before
+        frame ``k0`` (its stamp plus its compute; a resumed run reads it from the frame log)."""
+        taken = np.flatnonzero(~self.log.late[:k0])
+        if not self.opt.realtime or len(taken) == 0:
+            return -math.inf
+        k = int(taken[-1])
+        return self._stamp(self.first + k) + float(self.log.seconds[k])
+
+    def _csv_line(self, i: int, info, late: bool = False) -> str:
+        e = info.estimate
+        t = self._stamp(i)
         return (
             f"{i},{t:.6f},{e[0]:.4f},{e[1]:.4f},{e[2]:.6f},{info.particles},{int(info.converged)},"
             f"{int(info.updated)},{int(info.resampled)},{int(info.skipped_scan)},{int(info.recovered)},"
             f"{info.best_residual_m:.4f},{info.seconds:.4f},{info.hypotheses},{info.evidence_nats:.3f},"
             f"{info.inliers:.3f},{int(info.vetoed)},{info.refined},{info.refine_shift_m:.4f},"
             f"{info.odometry_scale:.5f},{info.gyro_bias_deg_s:.4f},{info.map_tiles},{info.map_left_out},{info.map_coarse},"
-            f"{info.map_mb:.2f},{info.map_load_ms:.1f}\n"
+            f"{info.map_mb:.2f},{info.map_load_ms:.1f},{int(late)}\n"
         )
 
 
