@@ -358,6 +358,12 @@ def trials(
     overwrite: bool = typer.Option(
         False, help="Start the suite folder over (its drives, trials and results are replaced)."
     ),
+    realtime: bool = typer.Option(
+        False,
+        help="Every trial at the sensor's pace (rangemcl localize --realtime: a scan that arrives while the "
+        "localizer is busy is dropped); the method's name gets '-realtime'. Its results depend on the "
+        "machine's speed and load: run such trials alone.",
+    ),
 ) -> None:
     """Run (or continue) one of the paper's experiments as a suite of localization trials, or
     (generalization) the sensors suite in towns drawn fresh for the run, each mapped first.
@@ -390,6 +396,7 @@ def trials(
         "models": None if models is None else tuple(m.strip() for m in models.split(",") if m.strip()),
         "sensors": None if sensors is None else tuple(m.strip() for m in sensors.split(",") if m.strip()),
         "levels": None if levels is None else tuple(m.strip() for m in levels.split(",") if m.strip()),
+        "realtime": realtime or None,
     }
     given = {k: v for k, v in given.items() if v is not None}
     draw = {
@@ -492,13 +499,16 @@ def _methods(base, config: Path | None, compare: list[str] | None):
 
     from simbed.trials.suites import suite_settings
 
-    suite_config = (
-        base if config is None else replace(base, settings=suite_settings(config), method=config.stem)
+    pace = "-realtime" if base.realtime else ""  # trials at the sensor's pace are another method
+    suite_config = replace(
+        base,
+        settings=base.settings if config is None else suite_settings(config),
+        method=(base.method if config is None else config.stem) + pace,
     )
     others = tuple(
-        replace(suite_config, settings="", method="default")
+        replace(suite_config, settings="", method="default" + pace)
         if c == "default"
-        else replace(suite_config, settings=suite_settings(Path(c)), method=Path(c).stem)
+        else replace(suite_config, settings=suite_settings(Path(c)), method=Path(c).stem + pace)
         for c in compare or ()
     )
     return suite_config, others

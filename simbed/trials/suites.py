@@ -79,13 +79,14 @@ class Trial:
     settings: str = ""  # localizer settings the suite was given (canonical JSON; "" = the defaults)
     method: str = "default"  # a name for those settings in the tables (the config file's stem); not keyed
     realism: str = "ideal"  # how the test drive's sensor was simulated (REALISM_LEVELS)
+    realtime: bool = False  # localized at the sensor's pace (rangemcl localize --realtime)
 
     @property
     def key(self) -> str:
         return (
             f"{self.suite}-{self.drive_key}-s{self.start_frame}-f{self.frames}-p{self.particles}-{self.model}"
             f"-r{self.seed}{'-kidnap' if self.kidnap else ''}{settings_tag(self.settings)}"
-            f"-v{METHOD_VERSION}"
+            f"{'-rt' if self.realtime else ''}-v{METHOD_VERSION}"
         )
 
     @property
@@ -137,6 +138,7 @@ class SuiteConfig:
     levels: tuple[str, ...] | None = None  # suite 'robustness' (default: all of REALISM_LEVELS)
     settings: str = ""  # localizer settings for every trial (canonical JSON, see suite_settings)
     method: str = "default"  # their name in the tables
+    realtime: bool = False  # every trial at the sensor's pace (scans that arrive while busy dropped)
 
 
 def suite_settings(path) -> str:
@@ -208,6 +210,7 @@ def suite_trials(suite: str, quick: bool = False, config: SuiteConfig | None = N
                     c.settings,
                     c.method,
                     realism,
+                    c.realtime,
                 )
             )
         return out
@@ -311,6 +314,7 @@ def run_trial(
                 first_frame=first,
                 frames=trial.frames,
                 plots=False,
+                realtime=trial.realtime,
             ),
         )
     m = json.loads((out / "metrics.json").read_text())
@@ -342,6 +346,7 @@ def run_trial(
         "seconds_per_frame_before": s["seconds_per_frame_before_convergence_median"],
         "hz_after": s["hz_after_convergence"],
         "startup_seconds": s.get("startup_seconds"),  # map, filter and priors before the first frame
+        "late_scans": s.get("late_scans", 0),  # realtime: scans dropped while the localizer was busy
         "seconds": time.perf_counter() - t0,
         # the drive's odometry: its distance is wheel_scale x the true one, its gyro starts this biased
         "odometry_wheel_scale": odo.get("wheel_scale"),
@@ -395,6 +400,7 @@ ROW_FIELDS = [f.name for f in fields(Trial) if f.name != "settings"] + [
     "seconds_per_frame_before",
     "hz_after",
     "startup_seconds",
+    "late_scans",
     "seconds",
     "odometry_wheel_scale",
     "odometry_gyro_bias_deg_s",
@@ -711,6 +717,8 @@ def aggregate(rows: list[dict], by: list[str]) -> list[dict]:
                 "fix_seconds_median": _median_of(rs, lambda r: as_number(r.get("fix_seconds"))),
                 "fix_driven_m_median": _median_of(rs, lambda r: as_number(r.get("fix_driven_m"))),
                 "startup_seconds_median": _median_of(rs, lambda r: as_number(r.get("startup_seconds"))),
+                # realtime trials: scans dropped while the localizer was busy, over all of them
+                "late_scans": _total(rs, "late_scans"),
                 "relocalized_after_frames_median": float(np.median(reloc)) if reloc else None,
                 # the odometry the trials ran with: distance error in per cent (median over the trials),
                 # and what is left of it after the filter's calibration (median of its absolute value)
@@ -779,7 +787,9 @@ def write_report(suite: str, rows: list[dict], out: Path) -> tuple[Path, Path]:
         "of earlier revisions). fix_seconds_median, fix_driven_m_median: the first correct convergence's "
         "compute in seconds from the trial's first frame through it, and the metres the car drove meanwhile "
         "(medians over the trials that had one; – for rows of earlier revisions); startup_seconds_median: "
-        "the map opened, the filter built and its place priors loaded, before the first frame.",
+        "the map opened, the filter built and its place priors loaded, before the first frame. late_scans "
+        "(methods named -realtime, run at the sensor's pace): the scans dropped because they arrived while "
+        "the localizer was busy, over all the trials.",
         "",
     ]
     cols = [*by, "trials", "successes", "location_rmse_m", "yaw_rmse_deg", "frames_to_converge_median"]
@@ -808,6 +818,8 @@ def write_report(suite: str, rows: list[dict], out: Path) -> tuple[Path, Path]:
         cols += ["paper_location_rmse_m", "paper_yaw_rmse_deg"]
         for a in agg:
             a["paper_location_rmse_m"], a["paper_yaw_rmse_deg"] = PAPER_SENSORS.get(a["sensor"], (None, None))
+    if any(str(r.get("realtime")).lower() == "true" for r in rows):
+        cols += ["late_scans"]
     if suite == "kidnap":
         cols += ["relocalized_after_frames_median"]
     if suite == "runtime":

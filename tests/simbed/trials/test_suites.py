@@ -318,3 +318,52 @@ def test_robustness_suite_sets_each_realism_level_on_the_same_starts(tmp_path):
     t = replace(t, realism="dropout")
     meta = load_sequence(ensure_drive(t, tmp_path)).meta
     assert meta["sensor"]["dropout_prob"] == 0.5
+
+
+def test_realtime_trials_are_their_own_method_and_report_their_dropped_scans(tmp_path):
+    """--realtime: every trial's key says so (a trial at the sensor's pace never counts as the offline
+    one), the CLI names the method '-realtime' (its --compare methods too), and the table counts the scans
+    dropped while the localizer was busy."""
+    from simbed.cli import _methods
+    from simbed.trials.suites import write_report
+
+    offline = suite_trials("sensors", False, replace(CONFIG, sensors=("vlp-16",)))
+    paced = suite_trials("sensors", False, replace(CONFIG, sensors=("vlp-16",), realtime=True))
+    rev = f"-v{METHOD_VERSION}"
+    assert all(
+        b.key == a.key[: -len(rev)] + "-rt" + rev and b.realtime and not a.realtime
+        for a, b in zip(offline, paced, strict=True)
+    )
+    cfg = tmp_path / "fast.yaml"
+    cfg.write_text("convergence:\n  method: prior\n")
+    mine, others = _methods(replace(CONFIG, realtime=True), cfg, ["default"])
+    assert mine.method == "fast-realtime" and mine.realtime
+    assert [o.method for o in others] == ["default-realtime"] and others[0].realtime
+    assert _methods(CONFIG, cfg, None)[0].method == "fast"
+
+    def row(method, late, realtime):
+        return {
+            "method": method,
+            "sensor": "vlp-16",
+            "success": "True",
+            "frames_to_converge": "20",
+            "frames_after_convergence": "50",
+            "location_rmse_m": "0.1",
+            "yaw_rmse_deg": "0.2",
+            "location_median_m": "0.05",
+            "hz_after": "30",
+            "seconds_per_frame_before": "0.1",
+            "relocalized_after_frames": "",
+            "late_scans": str(late),
+            "realtime": str(realtime),
+        }
+
+    rows = [row("fast-realtime", 3, True), row("fast-realtime", 4, True), row("fast", 0, False)]
+    table = write_report("sensors", rows, tmp_path)[0].read_text()
+    header = next(x for x in table.splitlines() if x.startswith("| method |")).split("|")
+    at = [c.strip() for c in header].index("late_scans")
+    paced_row = next(x for x in table.splitlines() if x.startswith("| fast-realtime |")).split("|")
+    assert paced_row[at].strip() == "7"
+    offline_table = write_report("sensors", rows[2:], tmp_path)[0].read_text()
+    lines = offline_table.splitlines()
+    assert "late_scans" not in lines[lines.index(next(x for x in lines if x.startswith("|---"))) - 1]
