@@ -333,6 +333,8 @@ class MonteCarloLocalizer(SearchMixin, PriorSearchMixin, RecoveryMixin):
         self._next_hyp_id = 0
         self._leader_id = -1
         self._prior_slice = 0  # the prior's slice of cells that the prior search matches next
+        # the prior search's rivals through the probation after its convergence (PriorSearchMixin)
+        self._rivals: dict | None = None
 
     # --- the tracking's state, as the filter's (read by the run's summary and the tools) ------------------
 
@@ -516,6 +518,7 @@ class MonteCarloLocalizer(SearchMixin, PriorSearchMixin, RecoveryMixin):
             self.map.preload(self.particles[:, :2], self.map_radius_m)
 
     def _set_particles(self, particles: np.ndarray) -> None:
+        self._rivals = None
         self.particles = np.asarray(particles, np.float64)
         self.log_w = np.zeros(len(self.particles))
         self.pending = np.zeros(3)
@@ -623,6 +626,12 @@ class MonteCarloLocalizer(SearchMixin, PriorSearchMixin, RecoveryMixin):
         if self.map.budgeted:  # a map within a memory budget (rangemcl.maps.view)
             info.update(self.map.update(self.particles[:, :2], self.map_radius_m, wait=not self.converged))
         info.update(self._weigh(rays, levelled, level))
+        if (
+            self.converged
+            and self._rivals is not None
+            and not (info["recovered"] or info.get("converged_now"))
+        ):
+            info.update(self._rivals_update(rays, level))  # the prior search's probation
         if self.converged:
             doubtful = self.lost is not None and self.lost.doubtful
             self.particles, self.last_estimate, refined = self.tracking.update(

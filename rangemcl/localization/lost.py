@@ -410,8 +410,10 @@ class LostDetector:
             or self.watch.last_ratio < self.doubt_ratio  # (False when NaN)
         )
 
-    def start_probation(self) -> None:
-        self._probation = self.probation_updates
+    def start_probation(self, with_opinions: bool = True) -> None:
+        """A convergence: a second opinion at each of the next ``probation_updates`` updates (none with
+        ``with_opinions`` False: the prior search keeps its own rivals through the probation)."""
+        self._probation = self.probation_updates if with_opinions else 0
         self._streak_reset()
 
     def _streak_reset(self) -> None:

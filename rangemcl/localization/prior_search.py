@@ -41,7 +41,7 @@ import numpy as np
 
 from rangemcl.localization.hypotheses import Hypothesis
 from rangemcl.localization.scan_prep import ScanRays
-from rangemcl.se2 import wrap_angle
+from rangemcl.se2 import se2_compose, wrap_angle
 
 PRIOR_SEARCH_HYPOTHESES = 32  # hypotheses kept at most (the best by evidence)
 PRIOR_SEARCH_BIRTHS = 8  # the prior's best places that may start as hypotheses at each update
@@ -155,6 +155,7 @@ class PriorSearchMixin:
             cloud[:, :2] += self.rng.normal(0.0, sxy, (n, 2))
             cloud[:, 2] = wrap_angle(cloud[:, 2] + self.rng.normal(0.0, syaw, n))
             self.particles, self.log_w = cloud, np.zeros(n)
+            self._keep_rivals(poses, evidence, ids)
             self._converge(search=True, settle=True)
             self.last_estimate = poses[0].copy()
             out["converged_now"] = True
@@ -244,3 +245,88 @@ class PriorSearchMixin:
             kept.append(int(i))
         k = np.asarray(kept, np.int64)
         return poses[k], evidence[k], ids[k], inliers[k], bad[k]
+
+    # --- the probation after a convergence ----------------------------------------------------------------
+
+    def _keep_rivals(self, poses: np.ndarray, evidence: np.ndarray, ids: np.ndarray) -> None:
+        """At the convergence: the leader (first) and the other hypotheses, with their evidence, carried
+        through the probation (:meth:`_rivals_update`) when the lost watch has one."""
+        updates = 0 if self.lost is None else self.lost.probation_updates
+        if updates <= 0:
+            self._rivals = None
+            return
+        self._rivals = dict(
+            poses=poses.copy(),
+            evidence=evidence - evidence[0],
+            ids=ids.copy(),
+            left=updates,
+            hits=0,
+            challenger=-1,
+        )
+
+    def _rivals_update(self, rays: ScanRays, level) -> dict:
+        """One update of the probation after the prior search converged: the search goes on beside the
+        tracking, as it went before, for ``recovery.probation_updates`` updates. The leader, the rivals it
+        beat and the prior's newborn places for this scan are searched on their fine grids (rendered planar
+        about each, one launch) and add this scan's log-likelihood to their evidence; a newborn is judged over
+        the recent scans against the leader, as in the search. A rival that leads the converged place at
+        ``recovery.probation_hits`` updates in a row (the same one) undoes the convergence: the search
+        takes up again from the leader and its rivals with their evidence (what the scans have told is
+        kept) and the sequential test decides again. This replaces the second opinions of the probation
+        (each 0.15-3 s; an update here costs about one search update). Returns
+        :class:`~rangemcl.localization.filter.StepInfo` fields (``recovered`` when undone)."""
+        r = self._rivals
+        # the leader: the converged cloud's best particle (the cloud stays as the tracking left it); the
+        # rivals moved with this update's odometry, as the search's hypotheses are
+        lead = self.particles[int(np.argmax(self.log_w))][None]
+        poses = np.vstack([lead, se2_compose(r["poses"][1:], self._motion)])
+        evidence, ids = r["evidence"].copy(), r["ids"].copy()
+        born = self._births(level() if level is not None else None, poses)
+        if len(born):
+            poses = np.vstack([poses, born])
+            evidence = np.concatenate([evidence, np.zeros(len(born))])
+            ids = np.concatenate([ids, self._next_hyp_id + np.arange(len(born))])
+            self._next_hyp_id += len(born)
+        newborn = np.zeros(len(poses), bool)
+        newborn[len(poses) - len(born) :] = True
+        poses, loglik, inliers, bad = self._searched(rays, poses, newborn)
+        poses[0] = lead[0]  # the leader is the tracked place, not its grid's peak
+        old = ~newborn
+        evidence[old] = evidence[old] + loglik[old]
+        if newborn.any():
+            window = self._window_loglik(
+                np.vstack([poses[0][None], poses[newborn]]), PRIOR_SEARCH_WINDOW, WINDOW_RAYS_EVERY
+            )
+            evidence[newborn] = evidence[0] + (window[1:] - window[0])
+        # rivals at the leader's place are the leader
+        apart = np.hypot(poses[:, 0] - poses[0, 0], poses[:, 1] - poses[0, 1]) > self.separation_m
+        apart[0] = True
+        poses, evidence, ids = poses[apart], evidence[apart], ids[apart]
+        inliers, bad = inliers[apart], bad[apart]
+        rest = np.arange(1, len(poses))
+        keep = self._pruned(poses[rest], evidence[rest], ids[rest], inliers[rest], bad[rest])
+        poses = np.vstack([poses[:1], keep[0]])
+        evidence = np.concatenate([[evidence[0]], keep[1]]) - evidence[0]
+        ids = np.concatenate([[ids[0]], keep[2]])
+        r.update(poses=poses, evidence=evidence, ids=ids, left=r["left"] - 1)
+        best = int(np.argmax(evidence[1:])) + 1 if len(evidence) > 1 else 0
+        if best and evidence[best] > 0.0:
+            r["hits"] = r["hits"] + 1 if ids[best] == r["challenger"] else 1
+            r["challenger"] = int(ids[best])
+        else:
+            r["hits"], r["challenger"] = 0, -1
+        need = max(1, self.lost.probation_hits)
+        if r["hits"] >= need:  # undone: the search takes up again with these hypotheses
+            self.particles, self.log_w, self._hyp_ids = poses, evidence - evidence.max(), ids
+            self._leader_id = -1
+            self.converged = False
+            self._rivals = None
+            self.tracking.stop()
+            self.convergence_test.reset()
+            self.lost.reset()
+            self.recoveries += 1
+            self.last_estimate = poses[int(np.argmax(evidence))].copy()
+            return dict(recovered=True)
+        if r["left"] <= 0:
+            self._rivals = None
+        return {}

@@ -49,7 +49,9 @@ class RecoveryMixin:
 
     def _start_probation(self) -> None:
         if self.lost is not None:
-            self.lost.start_probation()
+            # the prior search carries its rivals through the probation instead of second opinions
+            rivals = self.convergence == "prior" and self._rivals is not None
+            self.lost.start_probation(with_opinions=not rivals)
             challenge = self.challenge_top > 0 and self.challenge_places > 0
             self._challenges_left = self.lost.probation_updates if challenge else 0
 

@@ -535,3 +535,51 @@ def test_the_prior_search_refuses_a_map_held_within_a_budget():
     s.convergence.method = "prior"
     with pytest.raises(InputError, match="'prior': not yet for a map held within a memory budget"):
         build_localizer(m, s, seed=1, caster=caster)
+
+
+def test_the_prior_search_carries_its_rivals_through_the_probation_and_undoes_a_wrong_convergence():
+    """The prior search's probation (the search goes on beside the tracking instead of second opinions).
+    A correct convergence on the marked street of two is left alone through it. Then a convergence is
+    planted on the twin street with the marker in reach, the true street left as the rival it beat by a
+    nat, as a search that converged on the twin would leave them: the true street's
+    evidence overtakes the twin's and the convergence is undone within the probation's 10 updates (the
+    search takes up again, no spread), and the search converges again, on the marked street."""
+    caster, m = k_streets(2)
+    geo = RangeImageGeometry.for_spec(load_spec("mq-8").with_columns(360))
+    path = np.column_stack([np.arange(0.0, 140.0, 0.8), np.zeros(175), np.zeros(175)])
+    s = twin_settings()
+    s.convergence.method = "prior"
+    s.observation = ObservationSettings(rays=100, max_range_m=40.0, rendering="planar")
+    loc = build_localizer(m, s, seed=1, caster=caster)
+    loc.spread()
+    converged_at = None
+    for i in range(len(path)):
+        delta = se2_between(path[i - 1], path[i]) if i else np.zeros(3)
+        info = loc.step(delta, scan_at(caster, geo, path[i]))
+        if converged_at is None and info.converged_now:
+            converged_at = i
+            assert loc._rivals is not None and loc.lost._probation == 0  # rivals, not opinions
+        elif converged_at is not None:
+            assert not info.recovered  # the correct convergence stands through its probation
+            if i >= converged_at + 12:
+                break
+    assert converged_at is not None and loc._rivals is None  # the probation is over
+    assert abs(loc.estimate()[1]) < 1.0
+    # planted: converged on the twin street (y = 60) at x = 79.2 m, the true street a nat behind
+    k = 99
+    loc = build_localizer(m, s, seed=2, caster=caster)
+    loc.start_at(path[k] + np.array([0.0, 60.0, 0.0]))
+    lead = loc.particles[int(np.argmax(loc.log_w))]
+    loc._keep_rivals(np.vstack([lead, path[k]]), np.array([0.0, -1.0]), np.array([1000, 1001]))
+    loc._converge(search=True, settle=True)
+    undone, again = None, None
+    for i in range(k + 1, len(path)):
+        info = loc.step(se2_between(path[i - 1], path[i]), scan_at(caster, geo, path[i]))
+        if undone is None and info.recovered:
+            undone = i - k
+            assert info.particles < s.particles.global_count  # not a spread: the hypotheses go on
+        if undone is not None and info.converged_now:
+            again = i
+            break
+    assert undone is not None and undone <= 10, undone
+    assert again is not None and abs(loc.estimate()[1]) < 1.0, loc.estimate()
