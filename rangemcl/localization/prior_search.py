@@ -29,6 +29,13 @@ local peaks. Here the filter keeps only those places:
   ``margin_nats`` after ``min_distance_m`` of driving as the leader, and fits ``min_inliers`` of the
   structure rays); then ``converged_count`` particles start around the leader and the tracking takes over.
 
+* **Probation**: after the convergence the search goes on beside the tracking for
+  ``recovery.probation_updates`` updates (:meth:`PriorSearchMixin._rivals_update`): the converged place,
+  the rivals it beat and the prior's newborn places are searched and weighed as before; a rival that leads
+  the converged place at ``recovery.probation_hits`` updates in a row undoes the convergence and the search
+  takes up again with its hypotheses. It stands in for the lost watch's second opinions of the probation,
+  which cost ten times as much.
+
 While searching, the filter's particles are the hypotheses and their log weights the evidence, so the
 frame log, the estimate (the leader) and the snapshots read them as a cloud.
 """

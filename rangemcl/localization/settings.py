@@ -415,10 +415,13 @@ class RecoverySettings:
     prior cannot pin the filter to a wrong one for ever."""
     probation_updates: int = 10
     """After each convergence of a search, a second opinion at each of this many updates, suspicious or
-    not: a wrong convergence that fits nearly as well as the truth raises no signal. 0: no probation."""
+    not: a wrong convergence that fits nearly as well as the truth raises no signal. With the prior search
+    (`convergence.method: prior`) the search goes on beside the tracking for these updates instead, its
+    rivals searched and weighed as before the convergence. 0: no probation."""
     probation_hits: int = 2
     """Outside a suspicion (in the probation, or at updates in doubt): lost when the second opinion finds
-    a consistent better place this many times in a row."""
+    a consistent better place this many times in a row; in the prior search's probation, undone when one
+    rival leads the converged place at this many updates in a row."""
     opinion_hits: int = 2
     """In a suspicion: lost when the second opinion finds a better place this many times in a row, each
     where the last one moved with the odometry (within `convergence.separation_m`). That place is judged
