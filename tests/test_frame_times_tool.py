@@ -13,16 +13,16 @@ import numpy as np
 TOOL = Path(__file__).resolve().parents[1] / "tools" / "frame_times.py"
 
 
-def _write_trial(folder: Path, seconds, converged) -> None:
+def _write_trial(folder: Path, seconds, converged, late) -> None:
     folder.mkdir(parents=True)
     with open(folder / "frames.csv", "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["frame", "converged", "seconds"])
-        for k, (s, c) in enumerate(zip(seconds, converged, strict=True)):
-            w.writerow([k, int(c), f"{s:.4f}"])
+        w.writerow(["frame", "converged", "seconds", "late"])
+        for k, (s, c, d) in enumerate(zip(seconds, converged, late, strict=True)):
+            w.writerow([k, int(c), f"{s:.4f}", int(d)])
 
 
-def test_frames_split_by_the_state_each_began_in(tmp_path):
+def test_frames_split_by_the_state_each_began_in_and_dropped_scans_left_out(tmp_path):
     rng = np.random.default_rng(0)
     rows, expect = [], {"a": ([], []), "b": ([], [])}
     for t in range(6):
@@ -34,10 +34,11 @@ def test_frames_split_by_the_state_each_began_in(tmp_path):
         conv[10:25] = True
         conv[30:] = True
         began_converged = np.concatenate([[False], conv[:-1]])
-        expect[method][0].extend(seconds[~began_converged].round(4))
-        expect[method][1].extend(seconds[began_converged].round(4))
+        late = rng.random(n) < 0.2  # scans dropped at the sensor's pace: left out
+        expect[method][0].extend(seconds[~began_converged & ~late].round(4))
+        expect[method][1].extend(seconds[began_converged & ~late].round(4))
         key = f"trial{t}"
-        _write_trial(tmp_path / "trials" / key, seconds, conv)
+        _write_trial(tmp_path / "trials" / key, seconds, conv, late)
         rows.append({"method": method, "key": key})
     rows.append({"method": "b", "key": "never_ran"})  # a row without its trial folder is left out
     with open(tmp_path / "results.csv", "w", newline="") as fh:

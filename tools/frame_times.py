@@ -7,7 +7,8 @@
 Reads every trial row of the suite's ``results.csv`` and its ``trials/<key>/frames.csv`` (the ``seconds``
 each frame took), and splits the frames by what the filter did: a *search* frame began with the filter
 not converged (the frame that converges is the search's last), a *converged* frame began with it
-converged (tracking, and the lost watch's second opinions during a probation or a suspicion). For each
+converged (tracking, and the lost watch's second opinions during a probation or a suspicion); the scans
+a run at the sensor's pace dropped (``late``) are left out. For each
 method and kind: the number of frames, the median, 95th percentile and worst seconds, and how many took
 more than the sensor's period (100 ms) and more than 1 s. Two trials ran side by side on the 2 cores in
 the suites: compare methods measured alike, within one machine.
@@ -31,8 +32,8 @@ def frame_seconds(frames_csv: Path) -> tuple[list[float], list[float]]:
     converged_before = False
     with open(frames_csv, newline="") as fh:
         for row in csv.DictReader(fh):
-            s = float(row["seconds"])
-            (tracked if converged_before else search).append(s)
+            if row.get("late") != "1":  # (a scan dropped at the sensor's pace was not localized)
+                (tracked if converged_before else search).append(float(row["seconds"]))
             converged_before = row["converged"] == "1"
     return search, tracked
 
