@@ -107,27 +107,15 @@ class PriorSearchMixin:
     def _prior_search_update(self, rays: ScanRays, levelled: np.ndarray | None) -> dict:
         """One update of the prior search (the hypotheses have moved with the odometry). Returns
         :class:`~rangemcl.localization.filter.StepInfo` fields."""
-        poses, evidence, ids = self.particles, self.log_w, self._hyp_ids
-        born = self._births(levelled, poses)
-        if len(born):
-            poses = np.vstack([poses, born])
-            evidence = np.concatenate([evidence, np.zeros(len(born))])
-            ids = np.concatenate([ids, self._next_hyp_id + np.arange(len(born))])
-            self._next_hyp_id += len(born)
+        poses, evidence, ids, newborn = self._with_births(levelled, self.particles, self.log_w, self._hyp_ids)
         if len(poses) == 0:
             return dict(resampled=False, hypotheses=0, evidence_nats=0.0, inliers=math.nan)
-        newborn = np.zeros(len(poses), bool)
-        newborn[len(poses) - len(born) :] = True
         poses, loglik, inliers, bad = self._searched(rays, poses, newborn)
         old = ~newborn
         if old.any():
             evidence = evidence + loglik
             lead = int(np.flatnonzero(old)[np.argmax(evidence[old])])
-            if newborn.any():  # judged over the recent scans against the leader
-                window = self._window_loglik(
-                    np.vstack([poses[lead][None], poses[newborn]]), PRIOR_SEARCH_WINDOW, WINDOW_RAYS_EVERY
-                )
-                evidence[newborn] = evidence[lead] + (window[1:] - window[0])
+            self._judge_newborns(poses, evidence, newborn, lead)
         else:
             evidence = loglik.copy()
         poses, evidence, ids, inliers, bad = self._pruned(poses, evidence, ids, inliers, bad)
@@ -167,6 +155,28 @@ class PriorSearchMixin:
             self.last_estimate = poses[0].copy()
             out["converged_now"] = True
         return out
+
+    def _with_births(self, levelled, poses, evidence, ids):
+        """The hypotheses ``poses`` ``(K, 3)``, ``evidence`` and ``ids`` with this update's newborns
+        (:meth:`_births`) appended (evidence 0, fresh ids), and the mask of the newborns."""
+        born = self._births(levelled, poses)
+        if len(born):
+            poses = np.vstack([poses, born])
+            evidence = np.concatenate([evidence, np.zeros(len(born))])
+            ids = np.concatenate([ids, self._next_hyp_id + np.arange(len(born))])
+            self._next_hyp_id += len(born)
+        newborn = np.zeros(len(poses), bool)
+        newborn[len(poses) - len(born) :] = True
+        return poses, evidence, ids, newborn
+
+    def _judge_newborns(self, poses, evidence, newborn, lead: int) -> None:
+        """A newborn has no history: its evidence (in place) is the leader's (index ``lead``) plus its
+        log-likelihood over the last ``PRIOR_SEARCH_WINDOW`` scans less the leader's over the same."""
+        if newborn.any():
+            window = self._window_loglik(
+                np.vstack([poses[lead][None], poses[newborn]]), PRIOR_SEARCH_WINDOW, WINDOW_RAYS_EVERY
+            )
+            evidence[newborn] = evidence[lead] + (window[1:] - window[0])
 
     def _births(self, levelled: np.ndarray | None, poses: np.ndarray) -> np.ndarray:
         """The prior's best places for the scan that lie away from every hypothesis (at most
@@ -287,24 +297,12 @@ class PriorSearchMixin:
         # rivals moved with this update's odometry, as the search's hypotheses are
         lead = self.particles[int(np.argmax(self.log_w))][None]
         poses = np.vstack([lead, se2_compose(r["poses"][1:], self._motion)])
-        evidence, ids = r["evidence"].copy(), r["ids"].copy()
-        born = self._births(level() if level is not None else None, poses)
-        if len(born):
-            poses = np.vstack([poses, born])
-            evidence = np.concatenate([evidence, np.zeros(len(born))])
-            ids = np.concatenate([ids, self._next_hyp_id + np.arange(len(born))])
-            self._next_hyp_id += len(born)
-        newborn = np.zeros(len(poses), bool)
-        newborn[len(poses) - len(born) :] = True
+        poses, evidence, ids, newborn = self._with_births(level(), poses, r["evidence"].copy(), r["ids"])
         poses, loglik, inliers, bad = self._searched(rays, poses, newborn)
         poses[0] = lead[0]  # the leader is the tracked place, not its grid's peak
         old = ~newborn
         evidence[old] = evidence[old] + loglik[old]
-        if newborn.any():
-            window = self._window_loglik(
-                np.vstack([poses[0][None], poses[newborn]]), PRIOR_SEARCH_WINDOW, WINDOW_RAYS_EVERY
-            )
-            evidence[newborn] = evidence[0] + (window[1:] - window[0])
+        self._judge_newborns(poses, evidence, newborn, 0)
         # rivals at the leader's place are the leader
         apart = np.hypot(poses[:, 0] - poses[0, 0], poses[:, 1] - poses[0, 1]) > self.separation_m
         apart[0] = True
