@@ -102,3 +102,29 @@ def _write_map_v1(m, map_dir) -> None:
 def save_v1():
     """``save_v1(mesh_map, folder)``: write a map folder of format 1 (see :func:`_write_map_v1`)."""
     return _write_map_v1
+
+
+# The test files that take minutes (end to end runs, kill-and-resume, suites), handed out first: the tests
+# run on both cores a file per worker (pytest-xdist, --dist loadfile, in pyproject.toml), and a long file
+# started last would leave the other core idle at the end
+_LONG_FILES = (
+    "tests/simbed/trials/test_generalization.py",
+    "tests/test_mapping_end_to_end.py",
+    "tests/test_localization_end_to_end.py",
+    "tests/rangemcl/localization/test_hypotheses.py",
+    "tests/simbed/trials/test_suites.py",
+    "tests/rangemcl/datasets/test_lidar_odometry.py",
+)
+
+
+def pytest_collection_modifyitems(config, items):
+    root = config.rootpath
+
+    def rank(item):
+        try:
+            rel = item.path.relative_to(root).as_posix()
+        except ValueError:
+            return len(_LONG_FILES)
+        return _LONG_FILES.index(rel) if rel in _LONG_FILES else len(_LONG_FILES)
+
+    items.sort(key=rank)  # stable: the order within a file and among the other files is kept
