@@ -35,6 +35,7 @@ import warp as wp
 
 from rangemcl.errors import InputError
 from rangemcl.raycast import RayCaster, closest_hit
+from rangemcl.se2 import row_norms
 
 # the planar rendering casts each reference ray this far past the ray's own reach (m): a particle behind
 # the reference, or turned from it where the ray grazes the surface, still meets the plane the reference
@@ -433,8 +434,8 @@ class ParticleRenderer:
         self._change_top = top
         dev = self.caster.device
         # the farthest any ray of this scan reaches from its particle's sensor position
-        self._reach = float(np.linalg.norm(o, axis=1).max() + r.max() + self.margin_m)
-        unit = d / np.linalg.norm(d, axis=1, keepdims=True)
+        self._reach = float(row_norms(o).max() + r.max() + self.margin_m)
+        unit = d / row_norms(d)[:, None]
         self._scan = (unit, o, r)  # for the planar rendering's reference rays
         self._rays = (
             wp.array(unit, dtype=wp.vec3, device=dev),

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rangemcl.se2 import rotation_roll_pitch, se2_between
+from rangemcl.se2 import rotation_roll_pitch, row_norms, se2_between
 
 RAY_SAMPLINGS = ("points", "elevation", "structure")
 ELEVATION_BAND_DEG = 2.0  # sampling "elevation" and "structure": the bands sampled alike
@@ -198,7 +198,7 @@ def select_rays(
     happened after ``t``.
     """
     p = np.asarray(points, np.float64).reshape(-1, 3)
-    r = np.linalg.norm(p, axis=1)
+    r = row_norms(p)
     ok = np.isfinite(r) & (r >= min_range_m) & (r <= max_range_m)
     valid = int(ok.sum())
     if vehicle_length_m is not None and valid:
@@ -243,6 +243,6 @@ def select_rays(
         )
     if level_with_imu and roll_pitch is not None:
         q = q @ rotation_roll_pitch(*roll_pitch).T
-    rng_ = np.linalg.norm(q, axis=1)
+    rng_ = row_norms(q)
     structure = q[:, 2] + sensor_height_m > STRUCTURE_M  # after levelling: height above the ground
     return ScanRays(q / rng_[:, None], rng_, valid, structure, float(sensor_height_m))

@@ -198,3 +198,17 @@ def test_old_import_paths_are_the_same_functions():
 
     for name in ("wrap_angle", "pose2d", "odometry_increment", "circular_mean"):
         assert getattr(particles, name) is getattr(se2, name), name
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.sampled_from([np.float32, np.float64]), st.floats(-30, 30))
+def test_row_norms_equal_numpys_norm_to_the_bit(seed, dtype, log_scale):
+    """row_norms is a faster np.linalg.norm(p, axis=1): the same bits on random points of any scale, zero
+    rows and infinities included."""
+    rng = np.random.default_rng(seed)
+    p = (rng.standard_normal((500, 3)) * 10.0**log_scale).astype(dtype)
+    p[::50] = 0.0
+    p[7, 1] = np.inf
+    got, want = se2.row_norms(p), np.linalg.norm(p, axis=1)
+    assert got.dtype == want.dtype
+    np.testing.assert_array_equal(got, want)
