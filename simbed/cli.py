@@ -315,8 +315,8 @@ def trials(
     ),
     sensors: str = typer.Option(
         None,
-        help="Suites 'sensors' and 'generalization': sensor presets, comma-separated (default: the paper's "
-        "five).",
+        help="Suites 'sensors', 'robustness' and 'generalization': sensor presets, comma-separated "
+        "(default: the paper's five).",
     ),
     levels: str = typer.Option(
         None,
