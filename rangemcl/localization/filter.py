@@ -372,6 +372,8 @@ class MonteCarloLocalizer(SearchMixin, PriorSearchMixin, RecoveryMixin):
                 fallback_dir=self.prior_fallback_dir,
             )
             self._count_in_budget("place prior", self.prior.nbytes)
+            if self.map.budgeted:  # the budget counted what the prior holds now: nothing more is kept
+                self.prior.spectra_max_mb = 0
         return self.prior
 
     def warm_up(self, points: np.ndarray | None = None, roll_pitch=None) -> dict:
@@ -426,6 +428,8 @@ class MonteCarloLocalizer(SearchMixin, PriorSearchMixin, RecoveryMixin):
                 fallback_dir=self.prior_fallback_dir,
             )
             self._count_in_budget("beam place prior", self.beam_prior.nbytes)
+            if self.map.budgeted:
+                self.beam_prior.spectra_max_mb = 0
         return self.beam_prior
 
     def _elevations(self, prior: PlacePrior, levelled_points: np.ndarray) -> np.ndarray | None:

@@ -163,6 +163,10 @@ _MATCH_CHUNK = 512  # cells per pass of PlacePrior.match: about 9 MB of temporar
 TWO_STAGE_MIN_CELLS = 50_000  # priors this large are matched in two stages (PlacePrior.match): a city's
 COARSE_FACTOR = 6  # ... first on bins this many times coarser (6 degrees) ...
 SHORTLIST = 5_000  # ... then these best cells on the full bins
+# A band's cell spectra are kept from one match to the next where they take at most this (MB): they are
+# half of a match's work (a town's prior of 2,670 cells: 15 MB, 5,615 cells: 33 MB; a city's is larger
+# and recomputes them at each match, as the memory budget of its map asks)
+SPECTRA_MAX_MB = 64
 
 
 def _encode(x: np.ndarray) -> np.ndarray:
@@ -247,13 +251,18 @@ class PlacePrior:
         self._table = _encode(np.arange(params.levels + 1, dtype=np.float64) * params.quant_m)
         self._coarse: np.ndarray | None = None  # the two-stage match's coarse profiles, made on first use
         self._tree = None  # a k-d tree of the cell centres (cell_tree), made on first use
+        self._spectra: dict[int, tuple[np.ndarray, np.ndarray] | None] = {}  # by band (_cell_spectra)
+        # the most the kept spectra may take (MB): 0 keeps none (a map held within a memory budget, which
+        # counted this prior's nbytes when it was loaded)
+        self.spectra_max_mb = SPECTRA_MAX_MB
 
     @property
     def nbytes(self) -> int:
         """Bytes held in memory (the cell centres and the profiles; for priors matched in two stages the
-        coarse profiles too, made at the first match)."""
+        coarse profiles too, made at the first match; the cell spectra kept since the first match)."""
         coarse = self.profiles.nbytes // COARSE_FACTOR if len(self.xy) >= TWO_STAGE_MIN_CELLS else 0
-        return int(self.xy.nbytes + self.profiles.nbytes + coarse)
+        spectra = sum(a.nbytes + b.nbytes for a, b in filter(None, self._spectra.values()))
+        return int(self.xy.nbytes + self.profiles.nbytes + coarse + spectra)
 
     # --- building -----------------------------------------------------------------------------------------
 
@@ -335,13 +344,15 @@ class PlacePrior:
         if cells is not None:
             keep = np.asarray(cells, np.int64).reshape(-1)
             best, yaw = np.full(K, np.inf), np.zeros(K)
-            best[keep], yaw[keep] = self._best_shifts(self.profiles[keep, band], q, m)
+            sp = self._cell_spectra(band)
+            sp = None if sp is None else (sp[0][keep], sp[1][keep])
+            best[keep], yaw[keep] = self._best_shifts(self.profiles[keep, band], q, m, sp)
             return PriorMatch(np.maximum(best, 0.0), wrap_angle(yaw), int(n), band)
         if two_stage is None:
             two_stage = K >= TWO_STAGE_MIN_CELLS
         F = COARSE_FACTOR
         if not two_stage or B % F or K <= SHORTLIST:
-            best, yaw = self._best_shifts(self.profiles[:, band], q, m)
+            best, yaw = self._best_shifts(self.profiles[:, band], q, m, self._cell_spectra(band))
             return PriorMatch(np.maximum(best, 0.0), wrap_angle(yaw), int(n), band)
         coarse_q = _encode(prof[band].reshape(-1, F).min(axis=1))
         coarse_m = kn[band].reshape(-1, F).any(axis=1).astype(np.float64)
@@ -358,10 +369,33 @@ class PlacePrior:
             self._coarse = self.profiles.reshape(K, R, B // COARSE_FACTOR, COARSE_FACTOR).min(axis=3)
         return self._coarse
 
-    def _best_shifts(self, cells: np.ndarray, q: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _cell_spectra(self, band: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """The spectra of every cell's encoded profile in ``band`` and of its square, ``(K, B // 2 + 1)``
+        complex each, as :meth:`_best_shifts` computes them (the same chunks, so the same bits): made at
+        the first match and kept, or ``None`` where they would take more than ``spectra_max_mb``."""
+        if band not in self._spectra:
+            K, B = len(self.xy), self.params.bins
+            size_mb = K * (B // 2 + 1) * 32 / 2**20  # two complex128 arrays
+            if size_mb > self.spectra_max_mb:
+                self._spectra[band] = None
+            else:
+                cells = self.profiles[:, band]
+                s1 = np.empty((K, B // 2 + 1), np.complex128)
+                s2 = np.empty_like(s1)
+                for lo in range(0, K, _MATCH_CHUNK):
+                    enc = self._table[cells[lo : lo + _MATCH_CHUNK]]
+                    s1[lo : lo + len(enc)] = np.fft.rfft(enc, axis=1)
+                    s2[lo : lo + len(enc)] = np.fft.rfft(enc * enc, axis=1)
+                self._spectra[band] = (s1, s2)
+        return self._spectra[band]
+
+    def _best_shifts(
+        self, cells: np.ndarray, q: np.ndarray, m: np.ndarray, spectra: tuple | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Each cell's least masked mean squared difference over all circular shifts, and its yaw.
 
-        ``cells`` ``(k, B)`` quantised profiles, ``q`` the scan's encoded profile, ``m`` its mask."""
+        ``cells`` ``(k, B)`` quantised profiles, ``q`` the scan's encoded profile, ``m`` its mask;
+        ``spectra``: the cells' spectra (:meth:`_cell_spectra`'s rows for ``cells``), else computed here."""
         B = len(q)
         n = m.sum()
         # cost(s) = Σ_i m_i (q_i − c_{i+s})² / n, each sum a circular correlation over i
@@ -371,9 +405,13 @@ class PlacePrior:
         K = len(cells)
         best, yaw = np.empty(K), np.empty(K)
         for lo in range(0, K, _MATCH_CHUNK):  # bounded temporaries: (chunk, B) arrays, not (K, B)
-            enc = self._table[cells[lo : lo + _MATCH_CHUNK]]  # (k, B)
-            cross = np.fft.irfft(A1[None, :] * np.fft.rfft(enc, axis=1), n=B, axis=1)  # Σ m q c_{i+s}
-            sq = np.fft.irfft(A0[None, :] * np.fft.rfft(enc * enc, axis=1), n=B, axis=1)  # Σ m c²_{i+s}
+            if spectra is None:
+                enc = self._table[cells[lo : lo + _MATCH_CHUNK]]  # (k, B)
+                f1, f2 = np.fft.rfft(enc, axis=1), np.fft.rfft(enc * enc, axis=1)
+            else:
+                f1, f2 = spectra[0][lo : lo + _MATCH_CHUNK], spectra[1][lo : lo + _MATCH_CHUNK]
+            cross = np.fft.irfft(A1[None, :] * f1, n=B, axis=1)  # Σ m q c_{i+s}
+            sq = np.fft.irfft(A0[None, :] * f2, n=B, axis=1)  # Σ m c²_{i+s}
             cost = (qq - 2.0 * cross + sq) / n  # (k, B)
             s = np.argmin(cost, axis=1)
             rows = np.arange(len(cost))

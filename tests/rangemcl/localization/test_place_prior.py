@@ -91,6 +91,29 @@ def test_fft_matching_equals_a_direct_search_over_every_shift():
             assert circular_distance_deg(m.yaw[k], s_best * 2 * math.pi / 72) <= 0.5 * 360 / 72 + 1e-9
 
 
+def test_kept_cell_spectra_give_the_same_match_to_the_bit_and_are_counted():
+    """The cell spectra kept from the first match give every later match (all cells, or some) the costs
+    and yaws computed without them, to the bit; a prior whose spectra would pass spectra_max_mb keeps
+    none; nbytes counts what is kept."""
+    rng = np.random.default_rng(3)
+    params = PriorParams(bins=72)
+    K = 1300  # more than two of the match's chunks
+    profiles = rng.integers(10, 240, (K, 2, 72)).astype(np.uint8)
+    xy = rng.uniform(0, 50, (K, 2))
+    kept, fresh = PlacePrior(xy, profiles, params), PlacePrior(xy, profiles, params)
+    fresh.spectra_max_mb = 0
+    before = kept.nbytes
+    for _ in range(4):
+        q = rng.uniform(2.0, 30.0, (2, 72))
+        known = rng.uniform(size=(2, 72)) < 0.6
+        for cells in (None, rng.choice(K, 700, replace=False)):
+            a, b = kept.match(q, known, cells=cells), fresh.match(q, known, cells=cells)
+            np.testing.assert_array_equal(a.cost, b.cost)
+            np.testing.assert_array_equal(a.yaw, b.yaw)
+    assert kept._spectra[1] is not None and fresh._spectra[1] is None
+    assert kept.nbytes == before + 2 * K * (72 // 2 + 1) * 16 and fresh.nbytes == before
+
+
 def test_yaw_search_recovers_a_known_rotation_to_one_bin(town):
     t, caster, _m, prior = town
     rng = np.random.default_rng(1)
