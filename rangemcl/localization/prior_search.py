@@ -92,7 +92,8 @@ class PriorSearchMixin:
     docstring). What it reads of the filter: ``particles`` and ``log_w`` (the hypotheses and their
     evidence), ``scorer``, ``sensor_z``, ``rng``, ``prior_for``, ``_elevations``, ``sensor_height_m``,
     ``_moved_m``, ``convergence_test``, the search's settings (``separation_m``, ``prune_nats``,
-    ``min_inliers``, ``converged_count``, ``global_jitter``) and ``_window_loglik``; what it keeps:
+    ``min_inliers``, ``converged_count``, ``global_jitter``), ``_window_loglik`` and the recovery's
+    ``_unconverge``; what it keeps:
     ``_leader_id`` and ``_hyp_ids``."""
 
     def _prior_search_reset(self) -> None:
@@ -324,11 +325,8 @@ class PriorSearchMixin:
         if r["hits"] >= need:  # undone: the search takes up again with these hypotheses
             self.particles, self.log_w, self._hyp_ids = poses, evidence - evidence.max(), ids
             self._leader_id = -1
-            self.converged = False
             self._rivals = None
-            self.tracking.stop()
-            self.convergence_test.reset()
-            self.lost.reset()
+            self._unconverge()
             self.recoveries += 1
             self.last_estimate = poses[int(np.argmax(evidence))].copy()
             return dict(recovered=True)

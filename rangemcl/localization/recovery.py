@@ -93,11 +93,16 @@ class RecoveryMixin:
         own = np.log(np.maximum(self.weights, 1e-300))
         self.particles = np.vstack([self.particles, fresh])
         self.log_w = np.concatenate([own, np.repeat(np.asarray(gap, np.float64) - math.log(m), m)])
-        self.converged = False
         self._challenges_left = 0
+        self._leader = None
+        self._unconverge()
+
+    def _unconverge(self) -> None:
+        """A convergence undone by its probation (the particle search's challenge, the prior search's
+        rivals): the tracking stops, the sequential test and the lost watch start over."""
+        self.converged = False
         self.tracking.stop()
         self.convergence_test.reset()
-        self._leader = None
         self.lost.reset()
 
     def _second_opinion(
