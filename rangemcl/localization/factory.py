@@ -254,6 +254,7 @@ def build_localizer(
         place_prior=i.place_prior,
         prior_params=PriorParams(cell_m=i.prior_cell_m),
         beam_prior=i.beam_prior,
+        prior_profile_returns=i.prior_profile_returns,
         prior_share=i.prior_share,
         prior_top=i.prior_top,
         prior_yaw_sigma_deg=i.prior_yaw_sigma_deg,

@@ -184,6 +184,7 @@ class MonteCarloLocalizer(SearchMixin, PriorSearchMixin, RecoveryMixin):
         place_prior: bool,
         prior_params: PriorParams | None,
         beam_prior: bool,
+        prior_profile_returns: int,
         prior_share: float,
         prior_top: int,
         prior_yaw_sigma_deg: float,
@@ -264,6 +265,7 @@ class MonteCarloLocalizer(SearchMixin, PriorSearchMixin, RecoveryMixin):
         self.use_prior = bool(place_prior)
         self.prior_params = prior_params or PriorParams()
         self.use_beam_prior = bool(beam_prior)
+        self.prior_profile_returns = int(prior_profile_returns)
         self.prior_share = float(prior_share)
         self.prior_top = int(prior_top)
         self.prior_yaw_sigma = math.radians(prior_yaw_sigma_deg)
@@ -372,6 +374,7 @@ class MonteCarloLocalizer(SearchMixin, PriorSearchMixin, RecoveryMixin):
                 fallback_dir=self.prior_fallback_dir,
             )
             self._count_in_budget("place prior", self.prior.nbytes)
+            self.prior.scan_returns = self.prior_profile_returns
             if self.map.budgeted:  # the budget counted what the prior holds now: nothing more is kept
                 self.prior.spectra_max_mb = 0
         return self.prior
@@ -428,6 +431,7 @@ class MonteCarloLocalizer(SearchMixin, PriorSearchMixin, RecoveryMixin):
                 fallback_dir=self.prior_fallback_dir,
             )
             self._count_in_budget("beam place prior", self.beam_prior.nbytes)
+            self.beam_prior.scan_returns = self.prior_profile_returns
             if self.map.budgeted:
                 self.beam_prior.spectra_max_mb = 0
         return self.beam_prior

@@ -173,9 +173,10 @@ def _encode(x: np.ndarray) -> np.ndarray:
     return np.log1p(np.asarray(x, np.float64))
 
 
-def _profile(p: np.ndarray, r: np.ndarray, keep: np.ndarray, params: PriorParams):
+def _profile(p: np.ndarray, r: np.ndarray, keep: np.ndarray, params: PriorParams, returns: int = 1):
     """Per azimuth bin the nearest horizontal distance ``r`` of the points ``keep`` selects (beyond
-    ``min_range_m``), and which bins have one."""
+    ``min_range_m``), and which bins have one; ``returns`` k > 1: the k-th nearest, and a bin with fewer
+    than k points is unknown."""
     B = params.bins
     keep = keep & (r >= params.min_range_m)
     prof = np.full(B, params.max_range_m)
@@ -183,13 +184,27 @@ def _profile(p: np.ndarray, r: np.ndarray, keep: np.ndarray, params: PriorParams
     if keep.any():
         az = np.arctan2(p[keep, 1], p[keep, 0])
         b = np.clip(((az + np.pi) / (2 * np.pi) * B).astype(np.int64), 0, B - 1)
-        np.minimum.at(prof, b, np.minimum(r[keep], params.max_range_m))
-        known[b] = True
+        rk = np.minimum(r[keep], params.max_range_m)
+        if returns <= 1:
+            np.minimum.at(prof, b, rk)
+            known[b] = True
+        else:
+            order = np.lexsort((rk, b))  # by bin, then by distance
+            bs, rs = b[order], rk[order]
+            first = np.searchsorted(bs, np.arange(B))
+            count = np.bincount(bs, minlength=B)
+            ok = count >= returns
+            prof[ok] = rs[first[ok] + returns - 1]
+            known = ok
     return prof, known
 
 
 def scan_profile(
-    points: np.ndarray, sensor_height_m: float, params: PriorParams, elevation_deg: np.ndarray | None = None
+    points: np.ndarray,
+    sensor_height_m: float,
+    params: PriorParams,
+    elevation_deg: np.ndarray | None = None,
+    returns: int = 1,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per band (row 0 low, row 1 high) and azimuth bin the nearest horizontal distance of the scan's
     points in that height band, and a mask of the bins that have one. ``points`` ``(M, 3)`` in the
@@ -198,7 +213,8 @@ def scan_profile(
     points within ``beam_tol_deg`` of the beam's elevation: ``elevation_deg`` ``(M,)`` gives each point's
     elevation in the sensor's own frame (before levelling, which tilts a ring by the roll and pitch: a
     fraction of a degree can be half the ring spacing of a sensor with few beams), else it is read from
-    ``points``."""
+    ``points``. ``returns`` k > 1: each bin the k-th nearest distance, a bin with fewer points unknown (an
+    isolated spurious return does not set a bin)."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
     finite = np.isfinite(p[:, 0] + p[:, 1] + p[:, 2])  # a NaN or an infinity in a row makes its sum one
     p = p[finite]
@@ -206,10 +222,10 @@ def scan_profile(
     r = np.hypot(p[:, 0], p[:, 1])
     if params.beam_deg is not None:
         el = elevations_deg(p) if elevation_deg is None else np.asarray(elevation_deg, np.float64)[finite]
-        prof, known = _profile(p, r, np.abs(el - params.beam_deg) <= params.beam_tol_deg, params)
+        prof, known = _profile(p, r, np.abs(el - params.beam_deg) <= params.beam_tol_deg, params, returns)
         return prof[None], known[None]
-    low = _profile(p, r, (h >= params.band_m[0]) & (h <= params.band_m[1]), params)
-    high = _profile(p, r, (h >= params.high_band_m[0]) & (h <= params.high_band_m[1]), params)
+    low = _profile(p, r, (h >= params.band_m[0]) & (h <= params.band_m[1]), params, returns)
+    high = _profile(p, r, (h >= params.high_band_m[0]) & (h <= params.high_band_m[1]), params, returns)
     return np.stack([low[0], high[0]]), np.stack([low[1], high[1]])
 
 
@@ -255,6 +271,9 @@ class PlacePrior:
         # the most the kept spectra may take (MB): 0 keeps none (a map held within a memory budget, which
         # counted this prior's nbytes when it was loaded)
         self.spectra_max_mb = SPECTRA_MAX_MB
+        # the returns a scan's profile bin needs in candidates() (scan_profile's ``returns``; the filter
+        # sets its `init.prior_profile_returns`)
+        self.scan_returns = 1
 
     @property
     def nbytes(self) -> int:
@@ -441,7 +460,7 @@ class PlacePrior:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
         """The ``top`` best cells for a scan: ``(xy (T, 2), yaw (T,), cost (T,), known_bins)``, best first
         (``elevation_deg``: as :func:`scan_profile`; ``cells``: only among these, as :meth:`match`)."""
-        prof, known = scan_profile(points, sensor_height_m, self.params, elevation_deg)
+        prof, known = scan_profile(points, sensor_height_m, self.params, elevation_deg, self.scan_returns)
         mt = self.match(prof, known, cells=cells)
         top = int(min(top, len(self.xy) if cells is None else len(np.asarray(cells).reshape(-1))))
         idx = np.argpartition(mt.cost, top - 1)[:top]

@@ -511,6 +511,12 @@ class InitSettings:
     prior_yaw_sigma_deg: float = 2.0
     """Yaw spread in degrees (normal) of particles drawn around a candidate's aligned yaw, here and in the
     second opinion."""
+    prior_profile_returns: int = 1
+    """Returns a bin of a scan's place-prior profile needs: the bin takes the distance of its k-th nearest
+    return, and a bin with fewer returns is unknown. 1: the nearest return decides (any single one); 2: an
+    isolated spurious return (a rain droplet or dust near the sensor, a mixed pixel at a depth edge) no
+    longer sets the bin, since a surface returns several neighbouring pulses in each 1-degree bin (every
+    preset fires at least 5 per degree and ring)."""
     beam_prior: bool = True
     """A scan with nothing in the prior's high band (a sensor whose beams all point below the horizon,
     such as an 8-beam one) is matched with a prior of the sensor's own top beam instead of the low band,
@@ -650,6 +656,7 @@ _RULES: dict[str, str] = {
             "recovery.doubt_ratio",
             "recovery.min_residual_m",
             "init.prior_top",
+            "init.prior_profile_returns",
             "init.prior_cell_m",
             "init.inject_top",
             "motion.odometry_scale",
