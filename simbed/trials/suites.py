@@ -853,6 +853,20 @@ def write_report(suite: str, rows: list[dict], out: Path) -> tuple[Path, Path]:
         ax.set_ylabel("success rate")
         ax.set_ylim(-0.05, 1.05)
         ax.legend()
+    elif suite == "robustness":  # a grid: a row per preset (and method), a column per realism level
+        levels = [lv for lv in REALISM_LEVELS if any((a["realism"] or "ideal") == lv for a in agg)]
+        keys = [k for k in by if k != "realism"]
+        names = sorted({tuple(str(a[k]) for k in keys) for a in agg})
+        rate = np.full((len(names), len(levels)), np.nan)
+        for a in agg:
+            i, j = names.index(tuple(str(a[k]) for k in keys)), levels.index(a["realism"] or "ideal")
+            rate[i, j] = a["successes"] / a["trials"]
+            ax.text(j, i, f"{a['successes']}/{a['trials']}", ha="center", va="center", fontsize=9)
+        fig.set_size_inches(1.6 * len(levels) + 3.0, 0.45 * len(names) + 1.8)
+        im = ax.imshow(rate, vmin=0.0, vmax=1.0, cmap="RdYlGn", aspect="auto")
+        ax.set_xticks(range(len(levels)), levels)
+        ax.set_yticks(range(len(names)), [" / ".join(n) for n in names])
+        fig.colorbar(im, ax=ax, label="success rate")
     else:
         labels = [" / ".join(str(a[k]) for k in by) for a in agg]
         x = np.arange(len(agg))

@@ -320,6 +320,48 @@ def test_robustness_suite_sets_each_realism_level_on_the_same_starts(tmp_path):
     assert meta["sensor"]["dropout_prob"] == 0.5
 
 
+def test_robustness_report_draws_a_grid_of_presets_and_realism_levels(tmp_path):
+    """The robustness figure: one row per method and preset, one column per realism level present (in
+    REALISM_LEVELS' order), each cell its successes over its trials; the table lists every cell."""
+    import matplotlib.image as mpimg
+    import numpy as np
+
+    from simbed.trials.suites import write_report
+
+    def row(method, sensor, realism, success):
+        return {
+            "method": method,
+            "sensor": sensor,
+            "realism": realism,
+            "success": str(success),
+            "frames_to_converge": "20" if success else "",
+            "frames_after_convergence": "50",
+            "location_rmse_m": "0.01" if success else "",
+            "yaw_rmse_deg": "0.02",
+            "location_median_m": "0.01",
+            "hz_after": "30",
+            "seconds_per_frame_before": "1",
+            "relocalized_after_frames": "",
+            "wrong_convergences": "0",
+            "wrong_convergences_uncaught": "0",
+            "false_alarms": "0",
+        }
+
+    levels = (("ideal", True), ("rain", False))
+    rows = [row("fast", s, lv, ok) for s in ("mq-8", "vlp-16") for lv, ok in levels]
+    rows += [row("fast_k2", "mq-8", "rain", True), row("fast_k2", "mq-8", "rain", False)]
+    md, png = write_report("robustness", rows, tmp_path)
+    table = md.read_text()
+    assert "| fast | mq-8 | rain | 1 | 0 |" in table and "| fast_k2 | mq-8 | rain | 2 | 1 |" in table
+    import matplotlib
+
+    image = mpimg.imread(png)[..., :3]
+    cmap = matplotlib.colormaps["RdYlGn"]
+    for rate in (0.0, 0.5, 1.0):  # the cells are coloured by their success rate: 0/2, 1/2 and 2/2 appear
+        colour = np.asarray(cmap(rate)[:3])
+        assert (np.abs(image - colour).max(axis=2) < 0.02).sum() > 500, rate
+
+
 def test_realtime_trials_are_their_own_method_and_report_their_dropped_scans(tmp_path):
     """--realtime: every trial's key says so (a trial at the sensor's pace never counts as the offline
     one), the CLI names the method '-realtime' (its --compare methods too), and the table counts the scans
