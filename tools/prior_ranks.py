@@ -7,10 +7,11 @@ places (its first draw from the best 300), so the share of frames ranked within 
 
     python tools/prior_ranks.py --map MAP DRIVE [DRIVE ...] --returns 1,2 [--every 25] [--md table.md]
 
-A scan with nothing in the prior's high band (every beam below the horizon: the MQ-8) is matched with
-the map's beam prior of its top beam, as the localizer does (the map folder must hold it: it is written
-at the first search of such a sensor, or by ``rangemcl place-prior``). The scans are levelled with the
-drive's IMU roll and pitch, at the sensor height the localizer takes (the drive's mount).
+The prior is the one the localizer matches the drive's scans with (its own decision at the first scan:
+the map's band prior, or for a scan with nothing in the band prior's high band, every beam below the
+horizon as the MQ-8's, the prior of its top beam, loaded from the map folder or rendered there once),
+at the sensor height it takes (the drive's mount); the scans are levelled with the drive's IMU roll and
+pitch, as the localizer levels them.
 """
 
 from __future__ import annotations
@@ -33,51 +34,40 @@ def main() -> None:
     args = ap.parse_args()
 
     from rangemcl.datasets.kitti import load_sequence
-    from rangemcl.localization import LocalizerSettings
+    from rangemcl.localization import LocalizerSettings, build_localizer
     from rangemcl.localization.pipeline import resolve_sensor_height
-    from rangemcl.localization.place_prior import (
-        PRIOR_FILE,
-        PlacePrior,
-        beam_params,
-        elevations_deg,
-        scan_profile,
-        top_beam_deg,
-    )
+    from rangemcl.localization.place_prior import elevations_deg, scan_profile
     from rangemcl.maps.meshmap import MeshMap
     from rangemcl.se2 import rotation_roll_pitch, xyyaw_of
 
     ks = [int(k) for k in args.returns.split(",")]
     mesh_map = MeshMap.load(args.map)
-    band = PlacePrior.load(Path(args.map) / PRIOR_FILE)
-    if band is None:
-        raise SystemExit(f"{args.map}: no place prior ({PRIOR_FILE}); run rangemcl place-prior first")
     lines = [
         "| drive | returns | frames | rank median | within 32 | within 300 |",
         "|---|---|---|---|---|---|",
     ]
+
+    def levelled(seq, i):
+        p = seq.scan(i).astype(np.float64)
+        roll_pitch = None if seq.imu_roll_pitch is None else seq.imu_roll_pitch[i]
+        return p, (p if roll_pitch is None else p @ rotation_roll_pitch(*roll_pitch).T)
+
+    caster = None  # the map's BVH, built once for all the drives
     for drive in args.drives:
         seq = load_sequence(drive)
         truth = xyyaw_of(seq.poses)
-        height, _source = resolve_sensor_height(seq, mesh_map, LocalizerSettings())
+        settings = LocalizerSettings()
+        height, _source = resolve_sensor_height(seq, mesh_map, settings)
+        loc = build_localizer(mesh_map, settings, seed=0, sensor_height_m=height, caster=caster)
+        caster = loc.caster
         frames = range(0, len(seq), args.every)
-        first = seq.scan(frames[0]).astype(np.float64)
-        prior = band
-        _p, known = scan_profile(first, height, band.params)
-        if known[1].sum() < band.params.min_known_share * band.params.bins:  # as the filter decides
-            top = top_beam_deg(first, band.params.min_range_m)
-            params = beam_params(band.params, top, height)
-            files = sorted(Path(args.map).glob("place_prior_beam*.npz"))
-            prior = next((q for q in (PlacePrior.load(f) for f in files) if q and q.params == params), None)
-            if prior is None:
-                raise SystemExit(f"{args.map}: no beam prior for {top:.2f} deg; run a search there first")
+        raw, p = levelled(seq, frames[0])
+        prior = loc.prior_for(p, raw)  # the localizer's own choice: the band prior or the top beam's
         for k in ks:
             ranks = []
             for i in frames:
-                p = seq.scan(i).astype(np.float64)
-                el = elevations_deg(p)
-                if seq.imu_roll_pitch is not None:
-                    p = p @ rotation_roll_pitch(*seq.imu_roll_pitch[i]).T
-                prof, kn = scan_profile(p, height, prior.params, el, returns=k)
+                raw, p = levelled(seq, i)
+                prof, kn = scan_profile(p, height, prior.params, elevations_deg(raw), returns=k)
                 m = prior.match(prof, kn)
                 near = np.hypot(prior.xy[:, 0] - truth[i, 0], prior.xy[:, 1] - truth[i, 1]) < TRUE_RADIUS_M
                 ranks.append(int((m.cost < m.cost[near].min()).sum()) if near.any() else len(prior.xy))

@@ -373,11 +373,16 @@ class MonteCarloLocalizer(SearchMixin, PriorSearchMixin, RecoveryMixin):
                 notify=self.prior_notify,
                 fallback_dir=self.prior_fallback_dir,
             )
-            self._count_in_budget("place prior", self.prior.nbytes)
-            self.prior.scan_returns = self.prior_profile_returns
-            if self.map.budgeted:  # the budget counted what the prior holds now: nothing more is kept
-                self.prior.spectra_max_mb = 0
+            self._adopt_prior("place prior", self.prior)
         return self.prior
+
+    def _adopt_prior(self, what: str, prior: PlacePrior) -> None:
+        """A prior just loaded: counted in a map's memory budget (which then keeps it from holding more:
+        no spectra kept between matches), and told how many returns a scan's profile bin needs."""
+        self._count_in_budget(what, prior.nbytes)
+        if self.map.budgeted:
+            prior.spectra_max_mb = 0
+        prior.scan_returns = self.prior_profile_returns
 
     def warm_up(self, points: np.ndarray | None = None, roll_pitch=None) -> dict:
         """What the first frames would otherwise do on the way, done before them: for a search, the place
@@ -430,10 +435,7 @@ class MonteCarloLocalizer(SearchMixin, PriorSearchMixin, RecoveryMixin):
                 notify=self.prior_notify,
                 fallback_dir=self.prior_fallback_dir,
             )
-            self._count_in_budget("beam place prior", self.beam_prior.nbytes)
-            self.beam_prior.scan_returns = self.prior_profile_returns
-            if self.map.budgeted:
-                self.beam_prior.spectra_max_mb = 0
+            self._adopt_prior("beam place prior", self.beam_prior)
         return self.beam_prior
 
     def _elevations(self, prior: PlacePrior, levelled_points: np.ndarray) -> np.ndarray | None:
