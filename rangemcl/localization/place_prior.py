@@ -173,10 +173,24 @@ def _encode(x: np.ndarray) -> np.ndarray:
     return np.log1p(np.asarray(x, np.float64))
 
 
+SURFACE_SPREAD_FRAC = 0.1  # the distances one surface gives in one bin: within this share of the distance
+SURFACE_SPREAD_MIN_M = 0.2  # ... and at least this (the range noise of a weak far return)
+
+
+def surface_spread_m(r: np.ndarray) -> np.ndarray:
+    """How far apart (m) the horizontal distances of one surface's returns in one azimuth bin can lie at
+    distance ``r``: a 1-degree bin across a wall hit at up to 80 degrees' incidence spans
+    ``r·tan(80°)·(π/180) ≈ 0.1·r``, and range noise sets a floor."""
+    return np.maximum(SURFACE_SPREAD_MIN_M, SURFACE_SPREAD_FRAC * np.asarray(r, np.float64))
+
+
 def _profile(p: np.ndarray, r: np.ndarray, keep: np.ndarray, params: PriorParams, returns: int = 1):
     """Per azimuth bin the nearest horizontal distance ``r`` of the points ``keep`` selects (beyond
-    ``min_range_m``), and which bins have one; ``returns`` k > 1: the k-th nearest, and a bin with fewer
-    than k points is unknown."""
+    ``min_range_m``), and which bins have one. ``returns`` k > 1: the nearest distance at which k returns
+    lie within one surface's spread (:func:`surface_spread_m`) at or beyond it; a bin without such a
+    group is unknown. Scattered spurious returns (rain droplets, dust, mixed pixels) then set no bin
+    unless k of them fall within a few centimetres to decimetres of each other, however many pulses the
+    sensor fires per bin, while a surface returns several neighbouring pulses in each bin."""
     B = params.bins
     keep = keep & (r >= params.min_range_m)
     prof = np.full(B, params.max_range_m)
@@ -191,11 +205,15 @@ def _profile(p: np.ndarray, r: np.ndarray, keep: np.ndarray, params: PriorParams
         else:
             order = np.lexsort((rk, b))  # by bin, then by distance
             bs, rs = b[order], rk[order]
-            first = np.searchsorted(bs, np.arange(B))
-            count = np.bincount(bs, minlength=B)
-            ok = count >= returns
-            prof[ok] = rs[first[ok] + returns - 1]
-            known = ok
+            # one sorted key over all bins (a bin's keys lie apart from the next bin's by more than any
+            # distance plus its spread), so one search finds each return's group within its own bin
+            stride = 2.0 * params.max_range_m + 1.0
+            key = bs * stride + rs
+            group = np.searchsorted(key, key + surface_spread_m(rs), side="right") - np.arange(len(rs))
+            good = np.flatnonzero(group >= returns)
+            bins, at = np.unique(bs[good], return_index=True)  # each bin's nearest good return
+            prof[bins] = rs[good[at]]
+            known[bins] = True
     return prof, known
 
 
@@ -213,8 +231,8 @@ def scan_profile(
     points within ``beam_tol_deg`` of the beam's elevation: ``elevation_deg`` ``(M,)`` gives each point's
     elevation in the sensor's own frame (before levelling, which tilts a ring by the roll and pitch: a
     fraction of a degree can be half the ring spacing of a sensor with few beams), else it is read from
-    ``points``. ``returns`` k > 1: each bin the k-th nearest distance, a bin with fewer points unknown (an
-    isolated spurious return does not set a bin)."""
+    ``points``. ``returns`` k > 1: each bin the nearest distance with k returns within one surface's spread
+    at or beyond it, a bin without such a group unknown (scattered spurious returns do not set a bin)."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
     finite = np.isfinite(p[:, 0] + p[:, 1] + p[:, 2])  # a NaN or an infinity in a row makes its sum one
     p = p[finite]

@@ -512,11 +512,12 @@ class InitSettings:
     """Yaw spread in degrees (normal) of particles drawn around a candidate's aligned yaw, here and in the
     second opinion."""
     prior_profile_returns: int = 1
-    """Returns a bin of a scan's place-prior profile needs: the bin takes the distance of its k-th nearest
-    return, and a bin with fewer returns is unknown. 1: the nearest return decides (any single one); 2: an
-    isolated spurious return (a rain droplet or dust near the sensor, a mixed pixel at a depth edge) no
-    longer sets the bin, since a surface returns several neighbouring pulses in each 1-degree bin (every
-    preset fires at least 5 per degree and ring)."""
+    """Returns a bin of a scan's place-prior profile needs: the bin takes the nearest distance at which
+    this many returns lie within one surface's spread (10 % of the distance, at least 0.2 m), and a bin
+    without such a group is unknown. 1: the nearest return decides (any single one); 3: scattered spurious
+    returns (rain droplets or dust near the sensor, mixed pixels at depth edges) no longer set a bin unless
+    three of them fall together, however many pulses the sensor fires per bin, while a surface returns
+    several neighbouring pulses in each 1-degree bin (every preset fires at least 5 per degree and ring)."""
     beam_prior: bool = True
     """A scan with nothing in the prior's high band (a sensor whose beams all point below the horizon,
     such as an 8-beam one) is matched with a prior of the sensor's own top beam instead of the low band,

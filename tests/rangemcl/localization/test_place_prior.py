@@ -209,33 +209,58 @@ def test_profile_of_a_scan_keeps_only_the_height_bands_and_marks_empty_bins():
     assert prof[0, 0] == p.max_range_m
 
 
-def test_a_profile_bin_of_k_returns_ignores_isolated_spurious_returns():
-    """returns=k: each bin the k-th nearest distance, a bin with fewer points unknown, so one spurious
-    return near the sensor (a rain droplet) no longer sets a bin that a wall fills with its pulses; k=1 is
-    the nearest, as before. Checked against a per-bin sort on random walls and droplets."""
+def _group_distance(ri: np.ndarray, k: int) -> float | None:
+    """The brute-force reference: the nearest of a bin's distances with k of them (itself included)
+    within one surface's spread at or beyond it."""
+    for x in np.sort(ri):
+        if ((ri >= x) & (ri <= x + max(0.2, 0.1 * x))).sum() >= k:
+            return float(x)
+    return None
+
+
+def test_a_profile_bin_of_k_returns_ignores_scattered_spurious_returns():
+    """returns=k: each bin the nearest distance at which k returns lie within one surface's spread
+    (max(0.2 m, 10 % of the distance)), a bin without such a group unknown; so droplets scattered near the
+    sensor do not set a bin that a wall fills with its pulses, even several in one bin; k=1 is the
+    nearest, as before. Checked against a brute-force search of each bin on random walls and droplets."""
     rng = np.random.default_rng(4)
     p = PriorParams(bins=36)
     walls = rng.uniform(6.0, 25.0, 36)  # one wall per 10-degree bin, several pulses on it (within 30 m)
     az = rng.uniform(-np.pi, np.pi, 600)
     b = np.clip(((az + np.pi) / (2 * np.pi) * 36).astype(int), 0, 35)
     r = walls[b] + rng.normal(0.0, 0.02, len(az))
-    drops = rng.choice(len(az), 12, replace=False)  # droplets: a few pulses return at 2-4 m
-    r[drops] = rng.uniform(2.0, 4.0, len(drops))
+    drops = rng.choice(len(az), 40, replace=False)  # droplets: some pulses return at 1.5-5 m
+    r[drops] = rng.uniform(p.min_range_m, 5.0, len(drops))
     pts = np.column_stack([r * np.cos(az), r * np.sin(az), np.full(len(az), -1.73 + 1.0)])
     horizontal = np.hypot(pts[:, 0], pts[:, 1])
-    for k in (1, 2, 3):
+    for k in (1, 2, 3, 4):
         prof, known = scan_profile(pts, 1.73, p, returns=k)
         for i in range(36):
-            ri = np.sort(horizontal[b == i])
-            assert known[0, i] == (len(ri) >= k)
-            assert prof[0, i] == (ri[k - 1] if len(ri) >= k else p.max_range_m)
+            ri = horizontal[(b == i) & (horizontal >= p.min_range_m)]
+            want = _group_distance(ri, k)
+            assert known[0, i] == (want is not None)
+            assert prof[0, i] == (p.max_range_m if want is None else want)
     one = scan_profile(pts, 1.73, p, returns=1)[0][0]
-    two = scan_profile(pts, 1.73, p, returns=2)[0][0]
+    three = scan_profile(pts, 1.73, p, returns=3)[0][0]
     hit, times = np.unique(b[drops], return_counts=True)
-    once = hit[times == 1]  # bins with one droplet (two in one bin take k = 3)
-    assert len(once) >= 5
-    assert (one[hit] < 4.0 + 1e-9).all() and (np.abs(two[once] - walls[once]) < 0.2).all()
+    assert (times >= 2).sum() >= 5  # bins with several droplets: a k-th nearest return would take one
+    assert (one[hit] < 5.0 + 1e-9).all()
+    assert (np.abs(three[hit] - walls[hit]) < 0.1).mean() >= 0.9  # droplets this dense rarely group
     assert np.array_equal(one, scan_profile(pts, 1.73, p)[0][0])  # the default is k = 1
+    assert np.array_equal(one, np.array([horizontal[b == i].min() for i in range(36)]))  # all >= 1.5 m
+
+
+def test_a_profile_bin_of_k_returns_keeps_a_far_sparse_surface():
+    """A wall far away that one ring crosses with a handful of pulses per bin, at grazing incidence (its
+    distances spread over the bin), still sets the bin with k = 3: the spread allowed grows with the
+    distance."""
+    p = PriorParams(bins=360)
+    az = np.radians(np.arange(0.1, 1.0, 0.2))  # 5 pulses in bin 180 (0-1 degree)
+    r = 5.0 / np.cos(az + np.radians(75.0))  # a wall 5 m away, hit at 75-76 degrees' incidence: 19-21 m
+    pts = np.column_stack([r * np.cos(az), r * np.sin(az), np.full(len(az), -1.73 + 1.0)])
+    prof, known = scan_profile(pts, 1.73, p, returns=3)
+    assert known[0, 180] and known[0].sum() == 1
+    assert prof[0, 180] == pytest.approx(np.hypot(pts[:, 0], pts[:, 1]).min())
 
 
 CORNERS = np.array([[0.0, -27.0], [10.0, -27.0], [20.0, 23.0]])  # a few drivable cells of the town
