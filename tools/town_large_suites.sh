@@ -18,6 +18,9 @@
 #   particles the particles suite, range model, 1,000/5,000/10,000 particles, 10 starts
 #   paper     both suites again with configs/paper.yaml (paper-sensors, paper-particles: one of them);
 #             each runs right after the suite it repeats
+#   robustness the robustness suite with configs/fast.yaml, 5 presets x 10 starts at each realism level:
+#             ideal and realistic first (its ideal level runs the sensors suite's trials: the same drives,
+#             starts and seeds), then rain, dropout and fog; not in the default steps (STEPS=robustness)
 set -euo pipefail
 REPO=$(cd "$(dirname "$0")/.." && pwd)
 DATA=${1:-/work/data}
@@ -105,5 +108,12 @@ if want paper || want paper-particles; then
   "${SIMBED[@]}" trials particles --out suites/large "${SUITE[@]}" --models range \
     --counts 1000,5000,10000 --config src/configs/paper.yaml
   stamp paper-particles
+fi
+if want robustness; then
+  for levels in ideal,realistic rain,dropout fog; do
+    "${SIMBED[@]}" trials robustness --out suites/large_robust "${SUITE[@]}" --sensors $SENSORS \
+      --levels $levels --config src/configs/fast.yaml
+  done
+  stamp robustness
 fi
 echo "town_large_suites: finished $(date -u +%FT%TZ)"
