@@ -5,7 +5,7 @@ best cell within 2.5 m of the true position; 0: a true cell is the best), for ea
 ``init.prior_profile_returns`` asked. A search draws its hypotheses from the prior's best few dozen
 places (its first draw from the best 300), so the share of frames ranked within those is what it can use.
 
-    python tools/prior_ranks.py --map MAP DRIVE [DRIVE ...] --returns 1,2 [--every 25] [--md table.md]
+    python tools/prior_ranks.py --map MAP DRIVE [DRIVE ...] --returns 1,3 [--every 25] [--md table.md]
 
 The prior is the one the localizer matches the drive's scans with (its own decision at the first scan:
 the map's band prior, or for a scan with nothing in the band prior's high band, every beam below the
@@ -28,8 +28,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("drives", nargs="+", help="recorded drives (KITTI layout, with poses)")
     ap.add_argument("--map", required=True, help="the drives' map folder")
-    ap.add_argument("--returns", default="1,2", help="init.prior_profile_returns values, comma-separated")
+    ap.add_argument("--returns", default="1,3", help="init.prior_profile_returns values, comma-separated")
     ap.add_argument("--every", type=int, default=25, help="every n-th frame")
+    ap.add_argument(
+        "--min-range",
+        type=float,
+        default=0.0,
+        help="leave out the returns nearer than this (m; a what-if for near clutter such as fog's echoes)",
+    )
     ap.add_argument("--md", help="also write the table here")
     args = ap.parse_args()
 
@@ -49,10 +55,13 @@ def main() -> None:
 
     def levelled(seq, i):
         p = seq.scan(i).astype(np.float64)
+        if args.min_range > 0:
+            p = p[np.linalg.norm(p, axis=1) >= args.min_range]
         roll_pitch = None if seq.imu_roll_pitch is None else seq.imu_roll_pitch[i]
         return p, (p if roll_pitch is None else p @ rotation_roll_pitch(*roll_pitch).T)
 
     caster = None  # the map's BVH, built once for all the drives
+    near_cut = f" (returns from {args.min_range:g} m)" if args.min_range > 0 else ""
     for drive in args.drives:
         seq = load_sequence(drive)
         truth = xyyaw_of(seq.poses)
@@ -73,8 +82,8 @@ def main() -> None:
                 ranks.append(int((m.cost < m.cost[near].min()).sum()) if near.any() else len(prior.xy))
             r = np.asarray(ranks)
             line = (
-                f"| {Path(drive).name} | {k} | {len(r)} | {np.median(r):g} | {np.mean(r < 32):.2f} | "
-                f"{np.mean(r < 300):.2f} |"
+                f"| {Path(drive).name}{near_cut} | {k} | {len(r)} | {np.median(r):g} | "
+                f"{np.mean(r < 32):.2f} | {np.mean(r < 300):.2f} |"
             )
             lines.append(line)
             print(line, flush=True)
