@@ -97,6 +97,11 @@ def record(
         help="realistic sensor: strongest, last or dual echoes (last, dual: sensors that have them).",
     ),
     dropout: float = typer.Option(0.0, help="Share of the returns dropped at random on top (a stress test)."),
+    resume: bool = typer.Option(
+        False,
+        help="Continue an interrupted KITTI recording in OUT from its last checkpoint (one every "
+        "200 frames), with the same options; the result has the bytes of an uninterrupted one.",
+    ),
 ) -> None:
     """Drive a route and record LiDAR, ground-truth poses, odometry and IMU in the KITTI layout or as a
     ROS bag / MCAP (PointCloud2 with per-point time and ring, IMU, odometry, TF, truth, actors).
@@ -130,6 +135,7 @@ def record(
             weather=weather,
             return_mode=returns,
             dropout=dropout,
+            resume=resume,
         )
     except KeyboardInterrupt:
         from rangemcl.datasets.sources import open_source
@@ -140,8 +146,14 @@ def record(
         except InputError:
             done = 0
         where = "meta.yaml" if fmt == "kitti" else "its /simbed/meta message"
+        again = ""
+        if fmt == "kitti":
+            from simbed.record import checkpoint_path
+
+            if checkpoint_path(out).is_file():
+                again = "; the same command with --resume continues it from its last checkpoint"
         typer.echo(
-            f"interrupted: {done} complete frames in {out} (readable; {where} says complete: false)",
+            f"interrupted: {done} complete frames in {out} (readable; {where} says complete: false){again}",
             err=True,
         )
         raise typer.Exit(130) from None

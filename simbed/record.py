@@ -23,6 +23,10 @@ from simbed.sim.drive import Drive
 from simbed.sim.lidar import sensor_setup
 from simbed.sim.world import World, resolve_scene
 
+CHECKPOINT_EVERY = 200  # frames between a recording's checkpoints (20 s of a 10 Hz sensor)
+CHECKPOINT_NAME = ".record_checkpoint.pkl"
+CHECKPOINT_VERSION = 1
+
 
 @dataclass
 class RecordSummary:
@@ -69,6 +73,8 @@ def record(
     weather: str = "clear",
     return_mode: str = "strongest",
     dropout: float = 0.0,
+    resume: bool = False,
+    checkpoint_every: int = CHECKPOINT_EVERY,
 ) -> RecordSummary:
     """Drive ``route`` in ``scene`` and write ``frames`` LiDAR frames to ``out``.
 
@@ -91,8 +97,32 @@ def record(
     ``return_mode``'s echoes (``strongest``, ``last``, ``dual``: each point's ``echo`` in its metadata).
     ``dropout`` drops that share of the returns at random on top (a stress test; the spec's
     ``dropout_prob`` when larger).
+
+    A KITTI recording keeps a checkpoint in ``out`` every ``checkpoint_every`` frames (the simulation's
+    whole state; removed when the recording ends); ``resume`` continues an interrupted recording from its
+    last checkpoint, with the same arguments (``frames`` may differ), and gives the same bytes as an
+    uninterrupted one.
     """
     out = Path(out)
+    if checkpoint_every < 1:
+        raise InputError(f"checkpoint_every must be >= 1, got {checkpoint_every}")
+    args = {  # what a resumed recording must share with the one it continues
+        "scene": str(resolve_scene(scene)),
+        "route": route,
+        "sensor": sensor,
+        "actors": actors,
+        "variant": variant,
+        "seed": seed,
+        "skew": skew,
+        "device": device,
+        "loop": loop,
+        "actor_paths": None if actor_paths is None else str(actor_paths),
+        "sensor_model": sensor_model,
+        "weather": weather,
+        "return_mode": return_mode,
+        "dropout": dropout,
+    }
+    ckpt = _read_checkpoint(out, args, frames) if resume else None
     if frames < 1:
         raise InputError(f"frames must be >= 1, got {frames}")
     if actors < 0:
@@ -109,6 +139,8 @@ def record(
     _, sky = sensor_setup(spec, sensor_model, weather, return_mode)  # before anything is written
     if fmt not in ("kitti", *BAG_FORMATS):
         raise InputError(f"format {fmt!r}: expected kitti, {', '.join(BAG_FORMATS)}")
+    if resume and fmt != "kitti":
+        raise InputError(f"{out}: --resume continues KITTI recordings only (a bag is whole only once closed)")
     if fmt != "kitti":
         from rangemcl.datasets.rosbag import require_rosbags
 
@@ -190,14 +222,22 @@ def record(
     }
     summary = RecordSummary(out, 0, 0.0, path.length_m, 0.0, False)
     last = None
+    if ckpt is not None:
+        drive.restore(ckpt["drive"])
+        summary.frames, summary.seconds_simulated = ckpt["frames"], ckpt["seconds_simulated"]
+        summary.distance_driven_m, last = ckpt["distance_driven_m"], ckpt["last_pose"]
     if fmt == "kitti":
-        writer = SequenceWriter(out, meta=meta, overwrite=overwrite)
+        if ckpt is None and overwrite:
+            checkpoint_path(out).unlink(missing_ok=True)  # an earlier recording's
+        writer = SequenceWriter(
+            out, meta=meta, overwrite=overwrite, resume_at=None if ckpt is None else ckpt["frames"]
+        )
     else:
         from rangemcl.datasets.rosbag import BagWriter
 
         writer = BagWriter(out, fmt, meta=meta, T_base_sensor=spec.T_base_sensor, overwrite=overwrite)
-    with writer, _progress(progress, frames) as bar, viewer:
-        for _ in range(frames):
+    with writer, _progress(progress, frames, summary.frames) as bar, viewer:
+        for _ in range(summary.frames, frames):
             frame = drive.next_frame()
             s = frame.sweep
             extra = {} if fmt == "kitti" else {"actors": _actor_boxes(world)}
@@ -231,8 +271,73 @@ def record(
             if frame.stuck:
                 summary.stuck_at = tuple(float(c) for c in frame.T_world_sensor[:2, 3])
                 break
+            if fmt == "kitti" and summary.frames % checkpoint_every == 0 and summary.frames < frames:
+                _write_checkpoint(out, args, drive, summary, last)
         writer.update_meta(frames=summary.frames, route_done=summary.route_done, stuck_at=summary.stuck_at)
+    if fmt == "kitti":
+        checkpoint_path(out).unlink(missing_ok=True)
     return summary
+
+
+def checkpoint_path(out: Path) -> Path:
+    """Where a KITTI recording in ``out`` keeps its checkpoint."""
+    return Path(out) / CHECKPOINT_NAME
+
+
+def _write_checkpoint(out: Path, args: dict, drive: Drive, summary: RecordSummary, last) -> None:
+    import pickle
+
+    from rangemcl.common.atomic import atomic_write
+
+    doc = {
+        "version": CHECKPOINT_VERSION,
+        "generator": f"simbed {__version__}",
+        "args": args,
+        "frames": summary.frames,
+        "seconds_simulated": summary.seconds_simulated,
+        "distance_driven_m": summary.distance_driven_m,
+        "last_pose": None if last is None else np.array(last),
+        "drive": drive.state(),
+    }
+    atomic_write(checkpoint_path(out), pickle.dumps(doc, protocol=pickle.HIGHEST_PROTOCOL))
+
+
+def _read_checkpoint(out: Path, args: dict, frames: int) -> dict:
+    """The checkpoint a recording in ``out`` left, checked against this recording's arguments; one clear
+    error line where there is none to continue from."""
+    import pickle
+
+    path = checkpoint_path(out)
+    meta = out / "meta.yaml"
+    if meta.is_file() and "complete: true" in meta.read_text(encoding="utf-8", errors="replace"):
+        raise InputError(f"{out}: the recording is complete; nothing to resume")
+    if not path.is_file():
+        raise InputError(
+            f"{path}: no checkpoint to resume from (none is written before frame {CHECKPOINT_EVERY}, and "
+            "none by bag recordings); record again with --overwrite"
+        )
+    try:
+        doc = pickle.loads(path.read_bytes())
+        if not isinstance(doc, dict) or doc.get("version") != CHECKPOINT_VERSION:
+            raise ValueError("not a checkpoint of this simbed")
+        frames_done = int(doc["frames"])
+    except Exception as err:  # a damaged or foreign file: one line, never a traceback
+        raise InputError(f"{path}: unreadable checkpoint ({err}); record again with --overwrite") from None
+    if doc["args"] != args:
+        diff = sorted(k for k in args if doc["args"].get(k) != args[k])
+        raise InputError(
+            f"{path}: the recording was made with other arguments ({', '.join(diff)}: "
+            + ", ".join(f"{doc['args'].get(k)!r}" for k in diff)
+            + "); resume it with the same ones"
+        )
+    if frames <= frames_done:
+        raise InputError(f"{path}: it holds {frames_done} frames already; ask for more than that to resume")
+    if doc["generator"] != f"simbed {__version__}":
+        raise InputError(
+            f"{path}: written by {doc['generator']}, this is simbed {__version__}; "
+            "record again with --overwrite"
+        )
+    return doc
 
 
 BAG_FORMATS = ("mcap", "rosbag2", "rosbag1")
@@ -290,9 +395,10 @@ def scene_route(world: World, route: str, *, loop: bool = False, min_length_m: f
 class _progress:
     """A rich progress bar with speed and frame rate, or nothing."""
 
-    def __init__(self, enabled: bool, total: int):
+    def __init__(self, enabled: bool, total: int, done: int = 0):
         self.enabled = enabled
         self.total = total
+        self.done = done  # frames recorded before (a resumed recording)
 
     def __enter__(self):
         if not self.enabled:
@@ -307,7 +413,7 @@ class _progress:
             TimeElapsedColumn(),
         )
         self._p.__enter__()
-        task = self._p.add_task("record", total=self.total, info="")
+        task = self._p.add_task("record", total=self.total, completed=self.done, info="")
 
         def update(frame) -> None:
             info = f"{frame.speed_mps:4.1f} m/s, {len(frame.sweep.points):6d} pts"

@@ -6,7 +6,8 @@
 #   nohup bash tools/town_large_suites.sh /work/data > /work/data/town_large.log 2>&1 &
 #
 # and rerun the same command after an interruption: every step that finished left a stamp in
-# DATA/stamps/ and is skipped; recordings are redone whole, build-map resumes its tiles, the sweeps
+# DATA/stamps/ and is skipped; the covering drive resumes from its last checkpoint (the test drives are
+# redone whole), build-map resumes its tiles, the sweeps
 # reuse their finished runs and the suites their finished trials. The code is frozen at the first run
 # into DATA/src (a `git archive` of HEAD), so later edits in the work tree do not change the runs;
 # delete DATA/src to run newer code (and the stamps of the steps to redo).
@@ -56,8 +57,10 @@ if want map; then
   # the sweeps' drives are recorded on the second core while the covering drive records on the first
   if want sweeps; then (record_drive os1-64; record_drive hdl-64e) & fi
   if ! done_ record; then
+    again=(--overwrite)  # an interrupted recording goes on from its last checkpoint
+    [ -e large_full_run/.record_checkpoint.pkl ] && again=(--resume)
     "${SIMBED[@]}" record --scene town_large --route mapping --sensor os1-64 --actors 0 --frames 25000 \
-      --seed 1 --out large_full_run --overwrite
+      --seed 1 --out large_full_run "${again[@]}"
     stamp record
   fi
   if ! done_ build; then

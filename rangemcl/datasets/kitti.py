@@ -463,7 +463,11 @@ class SequenceWriter:
         meta: dict[str, Any] | None = None,
         calib_Tr: Any = None,
         overwrite: bool = False,
+        resume_at: int | None = None,
     ) -> None:
+        """``resume_at`` n: continue the sequence in ``root`` after its first n frames (an interrupted
+        recording, continued from a checkpoint taken at its n-th frame): frames written after them are
+        removed, and the next :meth:`add_frame` writes frame n."""
         self.root = Path(root)
         self.meta: dict[str, Any] = dict(meta or {})
         self.meta.pop("complete", None)
@@ -478,6 +482,10 @@ class SequenceWriter:
         self._broken = False
         self._complete = False
         self._meta_text = _meta_text(self.meta)  # fail on unwritable meta before touching the disk
+        if resume_at is not None:
+            self._cut_back(int(resume_at))
+            self._write_meta(complete=False)
+            return
         self._prepare(overwrite)
         self._write_meta(complete=False)
         self._write_text("calib.txt", "Tr: " + _pose_line(self.calib_Tr))
@@ -523,6 +531,39 @@ class SequenceWriter:
                     f"{root}: cannot create the output folder ({probe} is not a folder)"
                 ) from None
             raise _oserror(root, "create the output folder", err) from None
+
+    def _cut_back(self, n: int) -> None:
+        """Keep the first ``n`` frames of the sequence in ``root`` (the line files cut to ``n`` lines, later
+        scans and per-point arrays removed) and continue after them."""
+        root = self.root
+        lines: dict[str, list[str]] = {}
+        for name in LINE_FILES:
+            path = root / name
+            if path.is_file():
+                try:
+                    lines[name] = path.read_text(encoding="utf-8").splitlines(keepends=True)
+                except (OSError, UnicodeDecodeError) as err:
+                    raise InputError(f"{path}: cannot read it to continue the sequence ({err})") from None
+        for name in ("poses.txt", "times.txt"):
+            if len(lines.get(name, ())) < n:
+                raise InputError(
+                    f"{root / name}: {len(lines.get(name, ()))} lines, but the recording to continue had "
+                    f"written {n} frames"
+                )
+        for name, got in lines.items():
+            if len(got) != n:
+                self._write_text(name, "".join(got[:n]))
+        for folder in _SEQUENCE_DIRS:
+            if (root / folder).is_dir():
+                for f in (root / folder).iterdir():
+                    stem = f.name.split(".")[0]
+                    if not stem.isdigit() or int(stem) >= n:
+                        f.unlink()
+        (root / "velodyne").mkdir(parents=True, exist_ok=True)
+        self._frames = n
+        if n:
+            self._last_time = float(lines["times.txt"][n - 1])
+            self._has = {key: len(lines.get(f"{key}.txt", ())) >= n for key in ("odometry", "imu")}
 
     def _write_text(self, name: str, text: str) -> None:
         path = self.root / name

@@ -6,8 +6,11 @@ sweep's chunks) and returns what a real car would record for that frame, with gr
 
 from __future__ import annotations
 
+import copy
+import pickle
 from dataclasses import dataclass
 
+import mujoco
 import numpy as np
 
 from rangemcl.errors import InputError
@@ -29,6 +32,18 @@ class Frame:
     speed_mps: float
     route_done: bool
     stuck: bool = False  # the car made no progress along its route for 10 s
+
+
+# What of a drive changes as it runs, by part, beside the physics and the random generator: a checkpoint
+# holds these, and everything else is rebuilt the same from the drive's arguments (scene, route, sensor,
+# seed...). The recording's resume test fails when one is missing here (its bytes differ).
+_STATE_ATTRS = {
+    "drive": ("frame_index", "t0", "manual"),
+    "world": ("time",),
+    "controller": ("index", "integral", "done", "stuck", "_time", "_progress_mark"),
+    "odometry": ("scale", "bias", "x", "y", "yaw", "_wheels"),
+    "lidar": ("_last_axis",),
+}
 
 
 class Drive:
@@ -170,6 +185,37 @@ class Drive:
         c.integral = 0.0
         c._progress_mark = (c._time, c.progress_m)
         self.odometry.resync(self.world.data)
+
+    def _parts(self) -> dict:
+        return {
+            "drive": self,
+            "world": self.world,
+            "controller": self.controller,
+            "odometry": self.odometry,
+            "lidar": self.lidar,
+        }
+
+    def state(self) -> dict:
+        """What a checkpoint must hold to go on exactly from here (between frames): the physics (all of
+        MuJoCo's data, so that what the last step computed is there too), the random generator's state
+        and the parts' changing values (:data:`_STATE_ATTRS`)."""
+        parts = self._parts()
+        values = {k: {a: copy.deepcopy(getattr(parts[k], a)) for a in v} for k, v in _STATE_ATTRS.items()}
+        return {
+            "physics": pickle.dumps(self.world.data, protocol=pickle.HIGHEST_PROTOCOL),
+            "rng": copy.deepcopy(self.odometry.rng.bit_generator.state),
+            "parts": values,
+        }
+
+    def restore(self, state: dict) -> None:
+        """Go on from a :meth:`state` taken by a drive set up with the same arguments."""
+        saved = pickle.loads(state["physics"])
+        mujoco.mj_copyData(self.world.data, self.world.model, saved)
+        self.odometry.rng.bit_generator.state = state["rng"]
+        parts = self._parts()
+        for k, values in state["parts"].items():
+            for a, v in values.items():
+                setattr(parts[k], a, copy.deepcopy(v))
 
     def sensor_pose(self) -> np.ndarray:
         return self.car.pose(self.world.data) @ self.spec.T_base_sensor

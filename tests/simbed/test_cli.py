@@ -43,6 +43,13 @@ def test_record_writes_a_loadable_sequence(tmp_path):
     again = simbed("record", "--frames", "1", "--out", str(out))
     one_line_error(again, str(out))
     assert len(load_sequence(out)) == 3
+    # nor by resuming a recording that is complete
+    resumed = simbed(
+        "record", "--scene", "town_small", "--route", "test", "--sensor", "vlp-16", "--frames", "5",
+        "--actors", "2", "--seed", "7", "--out", str(out), "--resume",
+    )  # fmt: skip
+    one_line_error(resumed, str(out), "complete; nothing to resume")
+    assert len(load_sequence(out)) == 3
 
 
 @pytest.mark.parametrize(

@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 from rangemcl.datasets.kitti import load_sequence
+from rangemcl.errors import InputError
 from rangemcl.sensors import load_spec
-from simbed.record import record
+from simbed.record import checkpoint_path, record
 from simbed.scenes.routes import Route, make_route
 from simbed.sim.actors import ACTOR_KINDS
 from simbed.sim.drive import Drive
@@ -203,3 +204,77 @@ def test_odometry_drifts_but_tracks(tmp_path):
     assert abs(step_odom.sum() / step_true.sum() - drawn) < 0.004
     roll_pitch = seq.imu_roll_pitch
     assert np.abs(roll_pitch).max() < np.deg2rad(5)
+
+
+def _stop_after(monkeypatch, n: int) -> None:
+    """Make the n-th next frame of any drive raise KeyboardInterrupt (an interrupted recording)."""
+    original, calls = Drive.next_frame, [0]
+
+    def stopping(self):
+        calls[0] += 1
+        if calls[0] == n:
+            raise KeyboardInterrupt
+        return original(self)
+
+    monkeypatch.setattr(Drive, "next_frame", stopping)
+
+
+@pytest.mark.parametrize("sensor_model", ["ideal", "realistic"])
+def test_a_resumed_recording_gives_the_same_bytes(tmp_path, monkeypatch, sensor_model):
+    """A recording interrupted after its checkpoint and resumed equals one recorded in one go, to the byte:
+    scans, per-point arrays, poses, odometry, IMU, times, meta (the physics, the random generator, the
+    controller, the odometry and the LiDAR's state all come back), with moving actors and, for the
+    realistic sensor, weather clutter drawing from the generator; the checkpoint is gone at the end."""
+    kw = {"frames": 7, "actors": 3, "seed": 5, "progress": False, "checkpoint_every": 3}
+    if sensor_model == "realistic":
+        kw.update(sensor_model="realistic", weather="rain:20")
+    whole, cut = tmp_path / "whole", tmp_path / "cut"
+    record("town_small", "test", "vlp-16", whole, **kw)
+    with monkeypatch.context() as m:
+        _stop_after(m, 6)  # frames 0-4 written, the checkpoint holds 3
+        with pytest.raises(KeyboardInterrupt):
+            record("town_small", "test", "vlp-16", cut, **kw)
+    assert checkpoint_path(cut).is_file() and len(list((cut / "velodyne").iterdir())) == 5
+    assert "complete: false" in (cut / "meta.yaml").read_text()
+    summary = record("town_small", "test", "vlp-16", cut, resume=True, **kw)
+    assert summary.frames == 7 and not checkpoint_path(cut).exists()
+    files = sorted(p.relative_to(whole) for p in whole.rglob("*") if p.is_file())
+    assert files == sorted(p.relative_to(cut) for p in cut.rglob("*") if p.is_file())
+    assert len(files) >= 7 * 2 + 6
+    for f in files:
+        assert (whole / f).read_bytes() == (cut / f).read_bytes(), f
+    assert summary.distance_driven_m == pytest.approx(record_distance(whole))
+
+
+def record_distance(seq_dir) -> float:
+    p = load_sequence(seq_dir).poses[:, :2, 3]
+    return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+
+
+def test_a_resume_that_cannot_continue_is_one_clear_line(tmp_path, monkeypatch):
+    """Resuming with other arguments, without a checkpoint, or a finished recording: one InputError naming
+    the file and the problem, and nothing written."""
+    kw = {"frames": 5, "seed": 5, "progress": False, "checkpoint_every": 2}
+    out = tmp_path / "seq"
+    with monkeypatch.context() as m:
+        _stop_after(m, 4)
+        with pytest.raises(KeyboardInterrupt):
+            record("town_small", "test", "vlp-16", out, **kw)
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    with pytest.raises(InputError, match=r"other arguments \(seed: 5\)"):
+        record("town_small", "test", "vlp-16", out, resume=True, **{**kw, "seed": 6})
+    with pytest.raises(InputError, match="holds 2 frames already"):
+        record("town_small", "test", "vlp-16", out, resume=True, **{**kw, "frames": 2})
+    assert before == {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    fresh = tmp_path / "fresh"
+    with pytest.raises(InputError, match="no checkpoint to resume from"):
+        record("town_small", "test", "vlp-16", fresh, resume=True, **kw)
+    record("town_small", "test", "vlp-16", out, resume=True, **kw)
+    with pytest.raises(InputError, match="the recording is complete"):
+        record("town_small", "test", "vlp-16", out, resume=True, **kw)
+    checkpoint_path(out).write_bytes(b"garbage")
+    (out / "meta.yaml").write_text(
+        (out / "meta.yaml").read_text().replace("complete: true", "complete: false")
+    )
+    with pytest.raises(InputError, match="unreadable checkpoint"):
+        record("town_small", "test", "vlp-16", out, resume=True, **kw)
