@@ -24,7 +24,7 @@ from simbed.sim.lidar import sensor_setup
 from simbed.sim.world import World, resolve_scene
 
 CHECKPOINT_EVERY = 200  # frames between a recording's checkpoints (20 s of a 10 Hz sensor)
-CHECKPOINT_NAME = ".record_checkpoint.pkl"
+CHECKPOINT_NAME = ".record_checkpoint.npz"
 CHECKPOINT_VERSION = 1
 
 
@@ -104,25 +104,6 @@ def record(
     uninterrupted one.
     """
     out = Path(out)
-    if checkpoint_every < 1:
-        raise InputError(f"checkpoint_every must be >= 1, got {checkpoint_every}")
-    args = {  # what a resumed recording must share with the one it continues
-        "scene": str(resolve_scene(scene)),
-        "route": route,
-        "sensor": sensor,
-        "actors": actors,
-        "variant": variant,
-        "seed": seed,
-        "skew": skew,
-        "device": device,
-        "loop": loop,
-        "actor_paths": None if actor_paths is None else str(actor_paths),
-        "sensor_model": sensor_model,
-        "weather": weather,
-        "return_mode": return_mode,
-        "dropout": dropout,
-    }
-    ckpt = _read_checkpoint(out, args, frames) if resume else None
     if frames < 1:
         raise InputError(f"frames must be >= 1, got {frames}")
     if actors < 0:
@@ -158,6 +139,25 @@ def record(
         rerun_module()
     if viz_out is not None:
         check_rrd_path(viz_out)
+    if checkpoint_every < 1:
+        raise InputError(f"checkpoint_every must be >= 1, got {checkpoint_every}")
+    args = {  # what a resumed recording must share with the one it continues
+        "scene": str(resolve_scene(scene)),
+        "route": route,
+        "sensor": sensor,
+        "actors": actors,
+        "variant": variant,
+        "seed": seed,
+        "skew": skew,
+        "device": device,
+        "loop": loop,
+        "actor_paths": None if actor_paths is None else str(actor_paths),
+        "sensor_model": sensor_model,
+        "weather": weather,
+        "return_mode": return_mode,
+        "dropout": dropout,
+    }
+    ckpt = _read_checkpoint(out, args, frames) if resume else None
     rng = np.random.default_rng(seed)
     if loop and not is_waypoint_file(route):
         raise InputError(f"--loop is for waypoint files; route {route!r} is not one")
@@ -223,9 +223,14 @@ def record(
     summary = RecordSummary(out, 0, 0.0, path.length_m, 0.0, False)
     last = None
     if ckpt is not None:
-        drive.restore(ckpt["drive"])
-        summary.frames, summary.seconds_simulated = ckpt["frames"], ckpt["seconds_simulated"]
-        summary.distance_driven_m, last = ckpt["distance_driven_m"], ckpt["last_pose"]
+        doc, arrays = ckpt
+        try:
+            drive.restore(doc["drive"], arrays)
+        except (KeyError, ValueError, TypeError) as err:
+            raise InputError(f"{checkpoint_path(out)}: unreadable checkpoint ({err}); record again") from None
+        summary.frames, summary.seconds_simulated = doc["frames"], doc["seconds_simulated"]
+        summary.distance_driven_m, last = doc["distance_driven_m"], arrays.get("last_pose")
+        ckpt = doc
     if fmt == "kitti":
         if ckpt is None and overwrite:
             checkpoint_path(out).unlink(missing_ok=True)  # an earlier recording's
@@ -285,10 +290,15 @@ def checkpoint_path(out: Path) -> Path:
 
 
 def _write_checkpoint(out: Path, args: dict, drive: Drive, summary: RecordSummary, last) -> None:
-    import pickle
+    """The recording's checkpoint: one ``.npz`` of arrays and a JSON record (no pickle: as safe to load as
+    the recording), written atomically."""
+    import json
 
-    from rangemcl.common.atomic import atomic_write
+    from rangemcl.common.atomic import atomic_write, savez_stable
 
+    state, arrays = drive.state()
+    if last is not None:
+        arrays = {**arrays, "last_pose": np.asarray(last, np.float64)}
     doc = {
         "version": CHECKPOINT_VERSION,
         "generator": f"simbed {__version__}",
@@ -296,16 +306,18 @@ def _write_checkpoint(out: Path, args: dict, drive: Drive, summary: RecordSummar
         "frames": summary.frames,
         "seconds_simulated": summary.seconds_simulated,
         "distance_driven_m": summary.distance_driven_m,
-        "last_pose": None if last is None else np.array(last),
-        "drive": drive.state(),
+        "drive": state,
     }
-    atomic_write(checkpoint_path(out), pickle.dumps(doc, protocol=pickle.HIGHEST_PROTOCOL))
+    text = json.dumps(doc, sort_keys=True)
+    atomic_write(
+        checkpoint_path(out), lambda fh: savez_stable(fh, compressed=False, doc=np.array(text), **arrays)
+    )
 
 
-def _read_checkpoint(out: Path, args: dict, frames: int) -> dict:
-    """The checkpoint a recording in ``out`` left, checked against this recording's arguments; one clear
-    error line where there is none to continue from."""
-    import pickle
+def _read_checkpoint(out: Path, args: dict, frames: int) -> tuple[dict, dict]:
+    """The checkpoint a recording in ``out`` left (its record and arrays), checked against this
+    recording's arguments; one clear error line where there is none to continue from."""
+    import json
 
     path = checkpoint_path(out)
     meta = out / "meta.yaml"
@@ -317,7 +329,9 @@ def _read_checkpoint(out: Path, args: dict, frames: int) -> dict:
             "none by bag recordings); record again with --overwrite"
         )
     try:
-        doc = pickle.loads(path.read_bytes())
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+        doc = json.loads(str(arrays.pop("doc")))
         if not isinstance(doc, dict) or doc.get("version") != CHECKPOINT_VERSION:
             raise ValueError("not a checkpoint of this simbed")
         frames_done = int(doc["frames"])
@@ -337,7 +351,7 @@ def _read_checkpoint(out: Path, args: dict, frames: int) -> dict:
             f"{path}: written by {doc['generator']}, this is simbed {__version__}; "
             "record again with --overwrite"
         )
-    return doc
+    return doc, arrays
 
 
 BAG_FORMATS = ("mcap", "rosbag2", "rosbag1")

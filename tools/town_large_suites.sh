@@ -58,7 +58,7 @@ if want map; then
   if want sweeps; then (record_drive os1-64; record_drive hdl-64e) & fi
   if ! done_ record; then
     again=(--overwrite)  # an interrupted recording goes on from its last checkpoint
-    [ -e large_full_run/.record_checkpoint.pkl ] && again=(--resume)
+    [ -e large_full_run/.record_checkpoint.npz ] && again=(--resume)
     "${SIMBED[@]}" record --scene town_large --route mapping --sensor os1-64 --actors 0 --frames 25000 \
       --seed 1 --out large_full_run "${again[@]}"
     stamp record

@@ -6,8 +6,6 @@ sweep's chunks) and returns what a real car would record for that frame, with gr
 
 from __future__ import annotations
 
-import copy
-import pickle
 from dataclasses import dataclass
 
 import mujoco
@@ -44,6 +42,35 @@ _STATE_ATTRS = {
     "odometry": ("scale", "bias", "x", "y", "yaw", "_wheels"),
     "lidar": ("_last_axis",),
 }
+
+
+PHYSICS_STATE = mujoco.mjtState.mjSTATE_INTEGRATION  # all that mj_step's result depends on
+
+
+def _encode(value, key: str, arrays: dict):
+    """A part's value as JSON (numbers, None, lists for tuples); an array goes into ``arrays``."""
+    if isinstance(value, np.ndarray):
+        arrays[key] = value
+        return {"array": key}
+    if isinstance(value, tuple):
+        return {"tuple": [_encode(v, f"{key}.{i}", arrays) for i, v in enumerate(value)]}
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value)
+    if value is None:
+        return None
+    raise TypeError(f"{key}: cannot checkpoint a {type(value).__name__}")
+
+
+def _decode(value, arrays: dict):
+    if isinstance(value, dict) and "array" in value:
+        return np.array(arrays[value["array"]])
+    if isinstance(value, dict) and "tuple" in value:
+        return tuple(_decode(v, arrays) for v in value["tuple"])
+    return value
 
 
 class Drive:
@@ -195,27 +222,36 @@ class Drive:
             "lidar": self.lidar,
         }
 
-    def state(self) -> dict:
-        """What a checkpoint must hold to go on exactly from here (between frames): the physics (all of
-        MuJoCo's data, so that what the last step computed is there too), the random generator's state
-        and the parts' changing values (:data:`_STATE_ATTRS`)."""
+    def state(self) -> tuple[dict, dict[str, np.ndarray]]:
+        """What a checkpoint must hold to go on exactly from here (between frames), as JSON-able values and
+        named arrays: MuJoCo's integration state (the kinematics are computed again from it, as the frame's
+        last sync left them), the random generator's state and the parts' changing values
+        (:data:`_STATE_ATTRS`)."""
+        m, d = self.world.model, self.world.data
+        physics = np.empty(mujoco.mj_stateSize(m, PHYSICS_STATE))
+        mujoco.mj_getState(m, d, physics, PHYSICS_STATE)
+        arrays = {"physics": physics}
+        values: dict = {}
         parts = self._parts()
-        values = {k: {a: copy.deepcopy(getattr(parts[k], a)) for a in v} for k, v in _STATE_ATTRS.items()}
-        return {
-            "physics": pickle.dumps(self.world.data, protocol=pickle.HIGHEST_PROTOCOL),
-            "rng": copy.deepcopy(self.odometry.rng.bit_generator.state),
-            "parts": values,
-        }
+        for k, attrs in _STATE_ATTRS.items():
+            for a in attrs:
+                values[f"{k}.{a}"] = _encode(getattr(parts[k], a), f"{k}.{a}", arrays)
+        return {"rng": self.odometry.rng.bit_generator.state, "values": values}, arrays
 
-    def restore(self, state: dict) -> None:
+    def restore(self, doc: dict, arrays: dict[str, np.ndarray]) -> None:
         """Go on from a :meth:`state` taken by a drive set up with the same arguments."""
-        saved = pickle.loads(state["physics"])
-        mujoco.mj_copyData(self.world.data, self.world.model, saved)
-        self.odometry.rng.bit_generator.state = state["rng"]
+        m, d = self.world.model, self.world.data
+        physics = np.asarray(arrays["physics"], np.float64)
+        size = mujoco.mj_stateSize(m, PHYSICS_STATE)
+        if physics.shape != (size,):
+            raise ValueError(f"a physics state of {physics.size} values where the scene's has {size}")
+        mujoco.mj_setState(m, d, physics, PHYSICS_STATE)
+        mujoco.mj_kinematics(m, d)
+        self.odometry.rng.bit_generator.state = doc["rng"]
         parts = self._parts()
-        for k, values in state["parts"].items():
-            for a, v in values.items():
-                setattr(parts[k], a, copy.deepcopy(v))
+        for k, attrs in _STATE_ATTRS.items():
+            for a in attrs:
+                setattr(parts[k], a, _decode(doc["values"][f"{k}.{a}"], arrays))
 
     def sensor_pose(self) -> np.ndarray:
         return self.car.pose(self.world.data) @ self.spec.T_base_sensor
