@@ -25,7 +25,7 @@ from rangemcl.errors import InputError
 from rangemcl.localization import LocalizerSettings
 from rangemcl.localization.pipeline import RunOptions, localize_sequence
 from rangemcl.mapping.pipeline import MapSettings, build_map
-from simbed.record import record
+from simbed.record import record, resumable
 
 
 @dataclass
@@ -149,6 +149,7 @@ def _run_demo(out: Path, s: DemoSettings, device: str, say) -> dict:
             overwrite=True,
             progress=True,
             sensor_model=s.sensor_model,
+            resume=resumable(mapping),
         )
         say(f"  {r.frames} frames, {r.distance_driven_m:.0f} m driven")
     step("mapping drive", t0)
@@ -185,6 +186,7 @@ def _run_demo(out: Path, s: DemoSettings, device: str, say) -> dict:
             overwrite=True,
             progress=True,
             sensor_model=s.sensor_model,
+            resume=resumable(test),
         )
     step("test drive", t0)
 

@@ -289,6 +289,15 @@ def checkpoint_path(out: Path) -> Path:
     return Path(out) / CHECKPOINT_NAME
 
 
+def resumable(out: str | os.PathLike) -> bool:
+    """Whether ``out`` holds an interrupted KITTI recording with a checkpoint to go on from (callers that
+    record a drive of their own, such as the demo, resume it rather than start it again)."""
+    out = Path(out)
+    meta = out / "meta.yaml"
+    done = meta.is_file() and "complete: true" in meta.read_text(encoding="utf-8", errors="replace")
+    return checkpoint_path(out).is_file() and not done
+
+
 def _write_checkpoint(out: Path, args: dict, drive: Drive, summary: RecordSummary, last) -> None:
     """The recording's checkpoint: one ``.npz`` of arrays and a JSON record (no pickle: as safe to load as
     the recording), written atomically."""

@@ -489,7 +489,7 @@ def _complete_scene(town: TownDraw, xml: Path, parked_variants: int):
 def ensure_mapping_drive(xml: Path, path: Path, town: TownDraw, s: GeneralizationSettings, device: str, say):
     """The town's mapping drive (route ``mapping``, no moving actors, parked-car variant 0, to the route's
     end), recorded unless complete."""
-    from simbed.record import record
+    from simbed.record import record, resumable
 
     if _sequence_meta(path).get("complete"):
         say(f"[{town.name}] mapping drive: reusing {path}")
@@ -506,6 +506,7 @@ def ensure_mapping_drive(xml: Path, path: Path, town: TownDraw, s: Generalizatio
         device=device,
         overwrite=True,
         progress=False,
+        resume=resumable(path),
     )
     say(f"[{town.name}]   {r.frames} frames, {r.distance_driven_m:.0f} m of {r.route_length_m:.0f} m")
     if r.stuck_at is not None:

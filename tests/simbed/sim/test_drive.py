@@ -14,7 +14,7 @@ import pytest
 from rangemcl.datasets.kitti import load_sequence
 from rangemcl.errors import InputError
 from rangemcl.sensors import load_spec
-from simbed.record import checkpoint_path, record
+from simbed.record import checkpoint_path, record, resumable
 from simbed.scenes.routes import Route, make_route
 from simbed.sim.actors import ACTOR_KINDS
 from simbed.sim.drive import Drive
@@ -236,8 +236,9 @@ def test_a_resumed_recording_gives_the_same_bytes(tmp_path, monkeypatch, sensor_
             record("town_small", "test", "vlp-16", cut, **kw)
     assert checkpoint_path(cut).is_file() and len(list((cut / "velodyne").iterdir())) == 5
     assert "complete: false" in (cut / "meta.yaml").read_text()
+    assert resumable(cut) and not resumable(whole)  # what the demo and the suites ask before recording
     summary = record("town_small", "test", "vlp-16", cut, resume=True, **kw)
-    assert summary.frames == 7 and not checkpoint_path(cut).exists()
+    assert summary.frames == 7 and not checkpoint_path(cut).exists() and not resumable(cut)
     files = sorted(p.relative_to(whole) for p in whole.rglob("*") if p.is_file())
     assert files == sorted(p.relative_to(cut) for p in cut.rglob("*") if p.is_file())
     assert len(files) >= 7 * 2 + 6
