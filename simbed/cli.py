@@ -334,6 +334,11 @@ def trials(
         None,
         help="Robustness: sensor realism levels, comma-separated (default ideal,realistic,rain,fog,dropout).",
     ),
+    realism: str = typer.Option(
+        None,
+        help="Every suite but robustness: the test drives' sensor, one of ideal (default), realistic, rain, "
+        "fog, dropout (the robustness suite's levels; trial keys and drive folders name it).",
+    ),
     towns: int = typer.Option(None, help="Generalization: towns to draw (default 5)."),
     town_seeds: str = typer.Option(
         None, help="Generalization: the towns' generator seeds, comma-separated (default: drawn)."
@@ -408,8 +413,11 @@ def trials(
         "models": None if models is None else tuple(m.strip() for m in models.split(",") if m.strip()),
         "sensors": None if sensors is None else tuple(m.strip() for m in sensors.split(",") if m.strip()),
         "levels": None if levels is None else tuple(m.strip() for m in levels.split(",") if m.strip()),
+        "realism": realism,
         "realtime": realtime or None,
     }
+    if realism is not None and suite == "robustness":
+        raise InputError("--realism: the robustness suite takes its realism levels from --levels")
     given = {k: v for k, v in given.items() if v is not None}
     draw = {
         "--towns": towns,

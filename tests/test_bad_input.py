@@ -818,6 +818,8 @@ CASES: list[tuple[str, list[str], dict]] = [
         {"c.yaml": "particles:\n  globl_count: 5\n"},
     ),
     (TRIALS + " --compare default", ["--compare", "--report-only"], {}),
+    (TRIALS + " --realism snow", ["realism level", "snow"], {}),
+    (TRIALS.replace("runtime", "robustness") + " --realism rain", ["--realism", "--levels"], {}),
     (TRIALS + " --report-only", ["results.csv", "no finished trial"], {}),
     ("simbed trials runtime --out {d}/a_file --map {d}/map --quick", ["a_file", "not a folder"], {}),
     # --- simbed render

@@ -136,6 +136,7 @@ class SuiteConfig:
     models: tuple[str, ...] | None = None  # suites 'particles' and 'models' (default: all four)
     sensors: tuple[str, ...] | None = None  # suites 'sensors', 'robustness' (default: the paper's five)
     levels: tuple[str, ...] | None = None  # suite 'robustness' (default: all of REALISM_LEVELS)
+    realism: str = "ideal"  # every other suite: how its test drives' sensor is simulated (REALISM_LEVELS)
     settings: str = ""  # localizer settings for every trial (canonical JSON, see suite_settings)
     method: str = "default"  # their name in the tables
     realtime: bool = False  # every trial at the sensor's pace (scans that arrive while busy dropped)
@@ -169,7 +170,7 @@ def suite_trials(suite: str, quick: bool = False, config: SuiteConfig | None = N
     bad = [m for m in c.models or () if m not in MODEL_NAMES]
     if bad:
         raise InputError(f"observation model {bad[0]!r}: expected one of {', '.join(MODEL_NAMES)}")
-    bad = [lv for lv in c.levels or () if lv not in REALISM_LEVELS]
+    bad = [lv for lv in (*(c.levels or ()), c.realism) if lv not in REALISM_LEVELS]
     if bad:
         raise InputError(f"realism level {bad[0]!r}: expected one of {', '.join(REALISM_LEVELS)}")
     if any(not isinstance(n, int) or n < 1 for n in c.particle_counts or ()):
@@ -185,7 +186,7 @@ def suite_trials(suite: str, quick: bool = False, config: SuiteConfig | None = N
         n=starts,
         kidnap=False,
         seed0=0,
-        realism="ideal",
+        realism=c.realism,
     ):
         span = max(0, c.drive_frames - c.frames)
         out = []

@@ -320,6 +320,29 @@ def test_robustness_suite_sets_each_realism_level_on_the_same_starts(tmp_path):
     assert meta["sensor"]["dropout_prob"] == 0.5
 
 
+def test_every_suite_runs_at_a_chosen_realism_level():
+    """``realism`` (``--realism``) gives every suite but robustness its test drives' sensor: the same
+    trials as the ideal sensor's (sensors, starts, seeds), their own drives and keys, which are the
+    robustness suite's drives at that level; the default stays the ideal sensor."""
+    from simbed.trials.suites import REALISM_LEVELS
+
+    ideal = suite_trials("sensors", config=SuiteConfig(starts=3))
+    assert {t.realism for t in ideal} == {"ideal"}
+    robust = suite_trials("robustness", config=SuiteConfig(starts=3))
+    for level in REALISM_LEVELS:
+        got = suite_trials("sensors", config=SuiteConfig(starts=3, realism=level))
+        assert {t.realism for t in got} == {level}
+        assert [(t.sensor, t.start_frame, t.seed) for t in got] == [
+            (t.sensor, t.start_frame, t.seed) for t in ideal
+        ]
+        assert {t.drive_key for t in got} == {t.drive_key for t in robust if t.realism == level}
+        if level != "ideal":
+            assert not {t.key for t in got} & {t.key for t in ideal}
+    assert {t.realism for t in suite_trials("particles", config=SuiteConfig(realism="rain"))} == {"rain"}
+    with pytest.raises(InputError, match="realism level 'snow'"):
+        suite_trials("sensors", config=SuiteConfig(realism="snow"))
+
+
 def test_robustness_report_draws_a_grid_of_presets_and_realism_levels(tmp_path):
     """The robustness figure: one row per method and preset, one column per realism level present (in
     REALISM_LEVELS' order), each cell its successes over its trials; the table lists every cell."""
