@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rangemcl.datasets.kitti import SequenceWriter
+from rangemcl.datasets.kitti import SequenceWriter, read_meta
 from rangemcl.errors import InputError
 from rangemcl.sensors import load_spec
 from simbed import __version__
@@ -221,7 +221,7 @@ def record(
         "odometry": drive.odometry_errors(),
     }
     summary = RecordSummary(out, 0, 0.0, path.length_m, 0.0, False)
-    last = None
+    last, resume_at = None, None
     if ckpt is not None:
         doc, arrays = ckpt
         try:
@@ -230,13 +230,11 @@ def record(
             raise InputError(f"{checkpoint_path(out)}: unreadable checkpoint ({err}); record again") from None
         summary.frames, summary.seconds_simulated = doc["frames"], doc["seconds_simulated"]
         summary.distance_driven_m, last = doc["distance_driven_m"], arrays.get("last_pose")
-        ckpt = doc
+        resume_at = summary.frames
     if fmt == "kitti":
-        if ckpt is None and overwrite:
+        if resume_at is None and overwrite:
             checkpoint_path(out).unlink(missing_ok=True)  # an earlier recording's
-        writer = SequenceWriter(
-            out, meta=meta, overwrite=overwrite, resume_at=None if ckpt is None else ckpt["frames"]
-        )
+        writer = SequenceWriter(out, meta=meta, overwrite=overwrite, resume_at=resume_at)
     else:
         from rangemcl.datasets.rosbag import BagWriter
 
@@ -289,13 +287,18 @@ def checkpoint_path(out: Path) -> Path:
     return Path(out) / CHECKPOINT_NAME
 
 
+def _complete(out: Path) -> bool:
+    """Whether the KITTI recording in ``out`` is marked complete (its writer's flag in meta.yaml)."""
+    return bool(read_meta(Path(out) / "meta.yaml").get("complete"))
+
+
 def resumable(out: str | os.PathLike) -> bool:
     """Whether ``out`` holds an interrupted KITTI recording with a checkpoint to go on from (callers that
     record a drive of their own, such as the demo, resume it rather than start it again)."""
-    out = Path(out)
-    meta = out / "meta.yaml"
-    done = meta.is_file() and "complete: true" in meta.read_text(encoding="utf-8", errors="replace")
-    return checkpoint_path(out).is_file() and not done
+    try:
+        return checkpoint_path(Path(out)).is_file() and not _complete(Path(out))
+    except InputError:  # an unreadable meta.yaml: nothing to go on from; the recording starts again
+        return False
 
 
 def _write_checkpoint(out: Path, args: dict, drive: Drive, summary: RecordSummary, last) -> None:
@@ -329,8 +332,7 @@ def _read_checkpoint(out: Path, args: dict, frames: int) -> tuple[dict, dict]:
     import json
 
     path = checkpoint_path(out)
-    meta = out / "meta.yaml"
-    if meta.is_file() and "complete: true" in meta.read_text(encoding="utf-8", errors="replace"):
+    if _complete(out):
         raise InputError(f"{out}: the recording is complete; nothing to resume")
     if not path.is_file():
         raise InputError(

@@ -211,9 +211,10 @@ def _profile(p: np.ndarray, r: np.ndarray, keep: np.ndarray, params: PriorParams
             key = bs * stride + rs
             group = np.searchsorted(key, key + surface_spread_m(rs), side="right") - np.arange(len(rs))
             good = np.flatnonzero(group >= returns)
-            bins, at = np.unique(bs[good], return_index=True)  # each bin's nearest good return
-            prof[bins] = rs[good[at]]
-            known[bins] = True
+            gb = bs[good]  # sorted by bin, then distance: each bin's first is its nearest good return
+            first = np.flatnonzero(np.diff(gb, prepend=-1) != 0)
+            prof[gb[first]] = rs[good[first]]
+            known[gb[first]] = True
     return prof, known
 
 
