@@ -90,6 +90,17 @@ VEHICLE_TOP_BEAM_MARGIN = np.radians(0.25)  # an object this near the top beam's
 VEHICLE_CUT_TOP_M = 2.5  # an object seen higher than this, cut off by the top beam, may be taller still
 
 
+def top_elevation(points: np.ndarray) -> float:
+    """The highest elevation in radians among ``points`` ``(M >= 1, 3)``: ``arctan2(z, hypot(x, y)).max()``,
+    the same number, with the arctangent of the steepest few points only (it grows with ``z / r``)."""
+    r_xy = np.hypot(points[:, 0], points[:, 1])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slope = points[:, 2] / r_xy
+    m = slope[np.isfinite(slope)].max(initial=-np.inf)
+    steep = ~(slope < m - 1e-9 * abs(m))  # far wider than rounding; a NaN (0 / 0) is kept: arctan2 gives 0
+    return float(np.arctan2(points[steep, 2], r_xy[steep]).max())
+
+
 def vehicle_points(
     points: np.ndarray, sensor_height_m: float, max_length_m: float, max_height_m: float | None
 ) -> np.ndarray:
@@ -126,8 +137,9 @@ def vehicle_points(
         for a, b in ((d[:, 0], d[:, 0]), (d[:, 1], d[:, 1]), (d[:, 0], d[:, 1]))
     )
     angle = 0.5 * np.arctan2(2.0 * cxy, cxx - cyy)  # each object's major axis
-    u = d[:, 0] * np.cos(angle[comp]) + d[:, 1] * np.sin(angle[comp])
-    v = -d[:, 0] * np.sin(angle[comp]) + d[:, 1] * np.cos(angle[comp])
+    cos, sin = np.cos(angle)[comp], np.sin(angle)[comp]
+    u = d[:, 0] * cos + d[:, 1] * sin
+    v = -d[:, 0] * sin + d[:, 1] * cos
     extent = []
     for a in (u, v):
         hi = np.full(n, -np.inf)
@@ -150,11 +162,17 @@ def vehicle_points(
     nearest = np.full(bins, np.inf)
     np.minimum.at(nearest, b, rng_xy)
     # ... and so is an object seen up to more than a car's height that reaches the sensor's top beam: its
-    # top is unseen (a wall or a facade near the sensor; a car there is seen over)
-    top_beam = float(np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1])).max())
-    elevation = np.arctan2(p[idx, 2], rng_xy)
+    # top is unseen (a wall or a facade near the sensor; a car there is seen over). The elevations are
+    # needed only when such a tall object is among the candidates.
+    top_beam = elevation = None
+    if (vehicle & (top > VEHICLE_CUT_TOP_M)).any():
+        top_beam = top_elevation(p)
+        elevation = np.arctan2(p[idx, 2], rng_xy)
+    # each object's points, in their order, as one slice of a stable sort by object
+    order = np.argsort(comp, kind="stable")
+    start = np.concatenate([[0], np.cumsum(np.bincount(comp, minlength=n))])
     for k in np.flatnonzero(vehicle):
-        mine = comp == k
+        mine = order[start[k] : start[k + 1]]
         if top[k] > VEHICLE_CUT_TOP_M and elevation[mine].max() > top_beam - VEHICLE_TOP_BEAM_MARGIN:
             vehicle[k] = False
             continue
