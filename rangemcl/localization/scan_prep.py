@@ -69,7 +69,9 @@ def _band_weights(
         # height above the sensor's ground (levelled enough: a car's roll and pitch are small)
         h = p[:, 2] + sensor_height_m
         tall = (h >= tall_m) & (tall_share > 0)
-        part = np.where(h < STRUCTURE_M, 2, np.where(tall, 0, 1))  # 0 tall, 1 low structure, 2 road
+        part = np.ones(len(p), np.int64)  # 0 tall, 1 low structure, 2 road
+        part[tall] = 0
+        part[h < STRUCTURE_M] = 2
         has = np.bincount(part, minlength=3) > 0
         t = tall_share if has[0] and has[1] else float(has[0])  # a structure part alone takes its share
         g = ground_share if has[2] and (has[0] or has[1]) else float(has[2])  # ... and the road alike
@@ -77,7 +79,9 @@ def _band_weights(
     group = (key - key.min()) * 3 + part  # (band, part) groups: a small range of integers, counted directly
     counts = np.bincount(group)
     groups_in_part = np.bincount(np.flatnonzero(counts) % 3, minlength=3)
-    weight = share[part] / np.maximum(groups_in_part[part], 1) / counts[group]
+    # each group's weight, then each point's (the same divisions as point by point, done once per group)
+    gp = np.arange(len(counts)) % 3  # each group's part
+    weight = (share[gp] / np.maximum(groups_in_part[gp], 1) / np.maximum(counts, 1))[group]
     return weight / weight.sum()
 
 
@@ -232,8 +236,15 @@ def select_rays(
     if len(idx) > rays:
         weight = None
         if sampling in ("elevation", "structure"):
+            every = len(idx) == len(p)  # (most scans: no copy of every point)
             weight = _band_weights(
-                p[idx], r[idx], sampling, ground_share, tall_share, tall_m, sensor_height_m
+                p if every else p[idx],
+                r if every else r[idx],
+                sampling,
+                ground_share,
+                tall_share,
+                tall_m,
+                sensor_height_m,
             )
             drawable = int(np.count_nonzero(weight))
             if drawable < rays:  # a part with no share holds the rest: they fill the draw, least likely
