@@ -8,6 +8,7 @@ import typer
 
 from rangemcl.common.cliutil import run_app, version_option
 from simbed import __version__
+from simbed.sim import DEFAULT_SENSOR_MODEL
 
 app = typer.Typer(
     name="simbed",
@@ -84,7 +85,7 @@ def record(
     viz: bool = typer.Option(False, help="Stream the scene, car, sweeps and actors to the rerun viewer."),
     viz_out: Path = typer.Option(None, help="Save the drive as a rerun .rrd file (headless)."),
     sensor_model: str = typer.Option(
-        "ideal",
+        DEFAULT_SENSOR_MODEL,
         help="ideal (every surface returns every ray; intensity 0) or realistic (materials decide "
         "returns, range noise and intensity).",
     ),
@@ -253,7 +254,8 @@ def demo(
     particles: int = typer.Option(10000, help="Particles for global localization."),
     overwrite: bool = typer.Option(False, help="Replace the demo that OUT holds (finished or not)."),
     sensor_model: str = typer.Option(
-        "ideal", help="Both drives' LiDAR: ideal, or realistic (materials decide returns, noise, intensity)."
+        DEFAULT_SENSOR_MODEL,
+        help="Both drives' LiDAR: ideal, or realistic (materials decide returns, noise, intensity).",
     ),
 ) -> None:
     """Map town_small, record a test drive with other parked cars and moving actors, localize globally in
@@ -336,8 +338,9 @@ def trials(
     ),
     realism: str = typer.Option(
         None,
-        help="Every suite but robustness: the test drives' sensor, one of ideal (default), realistic, rain, "
-        "fog, dropout (the robustness suite's levels; trial keys and drive folders name it).",
+        help="Every suite but robustness: the test drives' sensor, one of ideal, realistic, rain, fog, "
+        "dropout (the robustness suite's levels; trial keys and drive folders name it; default "
+        f"{DEFAULT_SENSOR_MODEL}).",
     ),
     towns: int = typer.Option(None, help="Generalization: towns to draw (default 5)."),
     town_seeds: str = typer.Option(

@@ -26,6 +26,7 @@ from rangemcl.localization import LocalizerSettings
 from rangemcl.localization.pipeline import RunOptions, localize_sequence
 from rangemcl.mapping.pipeline import MapSettings, build_map
 from simbed.record import record, resumable
+from simbed.sim import DEFAULT_SENSOR_MODEL
 
 
 @dataclass
@@ -40,7 +41,7 @@ class DemoSettings:
     actors: int = 10
     particles: int = 10000
     seed: int = 0
-    sensor_model: str = "ideal"  # both drives' simulated LiDAR: ideal or realistic (simbed.sim.lidar)
+    sensor_model: str = DEFAULT_SENSOR_MODEL  # both drives' simulated LiDAR: ideal or realistic
 
     def check(self, device: str = "cpu") -> None:
         """Every setting (and the device) checked before the demo writes or records anything: a bad one

@@ -18,6 +18,7 @@ from rangemcl.sensors import load_spec
 from simbed import __version__
 from simbed.scenes.lanes import MAX_SPEED_MPS, check_lane, lane_from_waypoints, read_waypoints
 from simbed.scenes.routes import Route, is_waypoint_file, load_waypoints, make_route
+from simbed.sim import DEFAULT_SENSOR_MODEL
 from simbed.sim.actors import ACTOR_KINDS, actors_along_route, check_actor_paths, read_actor_paths
 from simbed.sim.drive import Drive
 from simbed.sim.lidar import sensor_setup
@@ -69,7 +70,7 @@ def record(
     fmt: str = "kitti",
     viz: bool = False,
     viz_out: str | os.PathLike | None = None,
-    sensor_model: str = "ideal",
+    sensor_model: str = DEFAULT_SENSOR_MODEL,
     weather: str = "clear",
     return_mode: str = "strongest",
     dropout: float = 0.0,

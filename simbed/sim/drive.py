@@ -14,6 +14,7 @@ import numpy as np
 from rangemcl.errors import InputError
 from rangemcl.sensors import LidarSpec
 from simbed.scenes.routes import Route
+from simbed.sim import DEFAULT_SENSOR_MODEL
 from simbed.sim.lidar import SimLidar, Sweep, sensor_setup
 from simbed.sim.vehicle import OdometryNoise, RouteFollower, WheelGyroOdometry, wheel_torque
 from simbed.sim.world import World
@@ -101,7 +102,7 @@ class Drive:
         cruise_mps: float = 8.0,
         settle_s: float = 1.0,
         odometry_noise: OdometryNoise | None = None,
-        sensor_model: str = "ideal",
+        sensor_model: str = DEFAULT_SENSOR_MODEL,
         weather: str = "clear",
         return_mode: str = "strongest",
     ):

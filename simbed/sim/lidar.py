@@ -28,13 +28,13 @@ from rangemcl.rangeimage import RangeImageGeometry
 from rangemcl.raycast import RayCaster
 from rangemcl.se2 import interpolate_poses
 from rangemcl.sensors import LidarSpec
+from simbed.sim import SENSOR_MODELS
 from simbed.sim.echoes import AXIS_WEIGHT, RETURN_MODES, echoes, edge_pixels, footprint_offsets, trace
 from simbed.sim.returns import ReturnModel
 from simbed.sim.weather import Weather
 
 LABEL_STATIC = 0
 LABEL_ACTOR = 1
-SENSOR_MODELS = ("ideal", "realistic")
 
 
 def sensor_setup(

@@ -43,6 +43,7 @@ from rangemcl.rangeimage import RangeImageGeometry
 from rangemcl.se2 import pose2d, se2_between, wrap_angle
 from rangemcl.sensors import load_spec
 from simbed.scenes.routes import distance_to_roads, make_route
+from simbed.sim import DEFAULT_SENSOR_MODEL
 from simbed.sim.drive import Drive, Frame
 from simbed.sim.world import World
 
@@ -64,7 +65,7 @@ class _SimEnv(gym.Env):
         actors: int = 0,
         device: str = "cpu",
         render_mode: str | None = None,
-        sensor_model: str = "ideal",
+        sensor_model: str = DEFAULT_SENSOR_MODEL,
     ):
         self.scene = scene
         self.sensor_model = sensor_model

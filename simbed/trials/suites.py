@@ -36,6 +36,7 @@ from rangemcl import method_version
 from rangemcl.common.pool import process_pool
 from rangemcl.errors import InputError
 from rangemcl.localization.models import MODEL_NAMES
+from simbed.sim import DEFAULT_SENSOR_MODEL
 
 SUITES = ("particles", "sensors", "models", "kidnap", "runtime", "robustness")
 # The robustness suite's sensor realism levels: how its test drives are recorded (simbed.record.record's
@@ -136,7 +137,7 @@ class SuiteConfig:
     models: tuple[str, ...] | None = None  # suites 'particles' and 'models' (default: all four)
     sensors: tuple[str, ...] | None = None  # suites 'sensors', 'robustness' (default: the paper's five)
     levels: tuple[str, ...] | None = None  # suite 'robustness' (default: all of REALISM_LEVELS)
-    realism: str = "ideal"  # every other suite: how its test drives' sensor is simulated (REALISM_LEVELS)
+    realism: str = DEFAULT_SENSOR_MODEL  # every other suite: its test drives' sensor (REALISM_LEVELS)
     settings: str = ""  # localizer settings for every trial (canonical JSON, see suite_settings)
     method: str = "default"  # their name in the tables
     realtime: bool = False  # every trial at the sensor's pace (scans that arrive while busy dropped)
