@@ -255,6 +255,7 @@ def build_localizer(
         prior_params=PriorParams(cell_m=i.prior_cell_m),
         beam_prior=i.beam_prior,
         prior_profile_returns=i.prior_profile_returns,
+        prior_skip_zero_intensity=i.prior_skip_zero_intensity,
         prior_share=i.prior_share,
         prior_top=i.prior_top,
         prior_yaw_sigma_deg=i.prior_yaw_sigma_deg,

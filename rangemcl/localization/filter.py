@@ -68,7 +68,7 @@ from rangemcl.localization.prior_search import PRIOR_SEARCH_WINDOW, PriorSearchM
 from rangemcl.localization.recovery import RecoveryMixin
 from rangemcl.localization.refine import ScanRefiner
 from rangemcl.localization.renderer import PLANAR_WITHIN_DEG, PLANAR_WITHIN_M
-from rangemcl.localization.scan_prep import ScanRays
+from rangemcl.localization.scan_prep import ScanRays, lit_returns
 from rangemcl.localization.search import SearchMixin
 from rangemcl.localization.spread import DrivableArea, uniform_particles
 from rangemcl.localization.tracking import Tracking
@@ -185,6 +185,7 @@ class MonteCarloLocalizer(SearchMixin, PriorSearchMixin, RecoveryMixin):
         prior_params: PriorParams | None,
         beam_prior: bool,
         prior_profile_returns: int,
+        prior_skip_zero_intensity: bool,
         prior_share: float,
         prior_top: int,
         prior_yaw_sigma_deg: float,
@@ -266,6 +267,7 @@ class MonteCarloLocalizer(SearchMixin, PriorSearchMixin, RecoveryMixin):
         self.prior_params = prior_params or PriorParams()
         self.use_beam_prior = bool(beam_prior)
         self.prior_profile_returns = int(prior_profile_returns)
+        self.prior_skip_zero_intensity = bool(prior_skip_zero_intensity)
         self.prior_share = float(prior_share)
         self.prior_top = int(prior_top)
         self.prior_yaw_sigma = math.radians(prior_yaw_sigma_deg)
@@ -384,13 +386,14 @@ class MonteCarloLocalizer(SearchMixin, PriorSearchMixin, RecoveryMixin):
             prior.spectra_max_mb = 0
         prior.scan_returns = self.prior_profile_returns
 
-    def warm_up(self, points: np.ndarray | None = None, roll_pitch=None) -> dict:
+    def warm_up(self, points: np.ndarray | None = None, roll_pitch=None, intensity=None) -> dict:
         """What the first frames would otherwise do on the way, done before them: for a search, the place
         prior loaded (rendered once and stored, if the map folder has none), the beam prior decided with
         ``points`` (the first scan, as the first update would decide it) and loaded (a tracking filter
         loads them when it is lost). Draws nothing from the generator and leaves the cloud as it is, so a
         run's results do not depend on it. Returns the seconds it took."""
         t0 = time.perf_counter()
+        points = self._prior_points(points, intensity)
         if self.use_prior and not self.converged:  # a search's first update needs them (tracking: when lost)
             self.place_prior()
             if points is not None and len(points) and self.use_beam_prior:
@@ -566,10 +569,12 @@ class MonteCarloLocalizer(SearchMixin, PriorSearchMixin, RecoveryMixin):
         frame_period_s: float | None = None,
         roll_pitch: tuple[float, float] | None = None,
         dt_s: float | None = None,
+        intensity: np.ndarray | None = None,
     ) -> StepInfo:
         """One LiDAR frame: ``odometry_delta`` ``(dx, dy, dyaw)`` is the car's motion since the previous
         frame in the previous frame's pose, over ``dt_s`` seconds (needed to calibrate the gyro's bias);
-        ``points`` the scan ``(M, 3)`` in the sensor frame (None or empty: predict only)."""
+        ``points`` the scan ``(M, 3)`` in the sensor frame (None or empty: predict only), ``intensity``
+        its returns' ``(M,)`` (for `init.prior_skip_zero_intensity`; None: not known)."""
         if len(self.particles) == 0 and not (self.convergence == "prior" and not self.converged):
             raise InputError("the filter has no particles: call spread() or start_at() first")
         t0 = time.perf_counter()
@@ -589,7 +594,7 @@ class MonteCarloLocalizer(SearchMixin, PriorSearchMixin, RecoveryMixin):
             if rays is None:
                 info["skipped_scan"] = True
             else:
-                info.update(self._update(rays, points, roll_pitch))
+                info.update(self._update(rays, self._prior_points(points, intensity), roll_pitch))
         info.update(self.tracking.readings())
         w = self.weights
         return StepInfo(
@@ -621,6 +626,13 @@ class MonteCarloLocalizer(SearchMixin, PriorSearchMixin, RecoveryMixin):
             roll_pitch=roll_pitch,
             sensor_height_m=self.sensor_height_m,
         )
+
+    def _prior_points(self, points: np.ndarray | None, intensity: np.ndarray | None) -> np.ndarray | None:
+        """The scan's points that the place prior matches: with `init.prior_skip_zero_intensity`, those
+        that report intensity above zero where some do (:func:`lit_returns`)."""
+        if not self.prior_skip_zero_intensity or points is None or intensity is None:
+            return points
+        return np.asarray(points)[lit_returns(intensity, len(points))]
 
     def _update(self, rays: ScanRays, points: np.ndarray, roll_pitch) -> dict:
         """An update with a scan (the particles have moved): the search's first draw from the place prior,

@@ -367,11 +367,11 @@ class LocalizationPipeline:
             return
         i = self.first + self.resume_from
         try:
-            points = self.seq.scan(i)
+            points, intensity = self.seq.scan_with_intensity(i)
         except InputError:
-            points = None
+            points = intensity = None
         rp = tuple(self.seq.imu_roll_pitch[i]) if self.seq.imu_roll_pitch is not None else None
-        self.loc.warm_up(points, rp)
+        self.loc.warm_up(points, rp, intensity)
 
     def fingerprint(self) -> dict:
         """What decides a run's results: a resumed run must have the same."""
@@ -462,9 +462,9 @@ class LocalizationPipeline:
         try:
             for k, i in enumerate(range(first + k0, last), start=k0):
                 delta = se2_between(self.odo[i - 1], self.odo[i]) if i > first else np.zeros(3)
-                points = fire = None
+                points = fire = intensity = None
                 try:
-                    points = seq.scan(i)
+                    points, intensity = seq.scan_with_intensity(i)
                     fire = seq.point_meta(i).get("time_s")
                 except InputError as err:
                     ev["unreadable_scans"] += 1
@@ -485,6 +485,7 @@ class LocalizationPipeline:
                     frame_period_s=period,
                     roll_pitch=rp,
                     dt_s=dt,
+                    intensity=None if late else intensity,
                 )
                 if late:  # not a scan without points: one the localizer had no time for
                     info = replace(info, skipped_scan=False)

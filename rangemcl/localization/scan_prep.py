@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rangemcl.errors import InputError
 from rangemcl.se2 import rotation_roll_pitch, row_norms, se2_between
 
 RAY_SAMPLINGS = ("points", "elevation", "structure")
@@ -48,6 +49,17 @@ class ScanRays:
             None if self.structure is None else self.structure[which],
             self.sensor_height_m,
         )
+
+
+def lit_returns(intensity: np.ndarray, n: int) -> np.ndarray:
+    """Which of a scan's ``n`` returns report intensity above zero (``(n,)`` bool), where any does: a
+    scan whose returns all report zero (the ideal simulated sensor, a source without intensity) keeps
+    every one. Fog, rain and dust echo weaker than any surface and report zero on a calibrated scale."""
+    it = np.asarray(intensity, np.float64).reshape(-1)
+    if len(it) != n:
+        raise InputError(f"intensity of {len(it)} returns for a scan of {n} points")
+    lit = it > 0
+    return lit if lit.any() else np.ones(n, bool)
 
 
 def _band_weights(

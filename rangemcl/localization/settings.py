@@ -518,6 +518,13 @@ class InitSettings:
     returns (rain droplets or dust near the sensor, mixed pixels at depth edges) no longer set a bin unless
     three of them fall together, however many pulses the sensor fires per bin, while a surface returns
     several neighbouring pulses in each 1-degree bin (every preset fires at least 5 per degree and ring)."""
+    prior_skip_zero_intensity: bool = False
+    """Leave out of the scans matched with the place prior the returns that report zero intensity, in a
+    scan that reports intensity at all (some return above zero). Fog, rain and dust echo weaker than any
+    surface: on a calibrated scale (Velodyne's and Ouster's reflectivity, simbed's realistic sensor) they
+    report zero, where a surface reports at least a few per cent; in fog of 200 m visibility they are most
+    of a scan's returns and every direction's nearest. A scan of the ideal simulated sensor (every
+    intensity zero) keeps every return. The weighing's rays are not affected."""
     beam_prior: bool = True
     """A scan with nothing in the prior's high band (a sensor whose beams all point below the horizon,
     such as an 8-beam one) is matched with a prior of the sensor's own top beam instead of the low band,

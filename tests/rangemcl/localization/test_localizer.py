@@ -718,3 +718,45 @@ def test_the_second_opinions_grid_look_lands_on_the_likelihoods_peak(world):
 )
 def test_the_shipped_configs_load_and_check(path):
     load_config(LocalizerSettings, path).check(str(path))
+
+
+def _fog_first_draw(world, skip: bool, intensity_of_surfaces: float):
+    """The search's first draw (from the place prior) for scans with fog's echoes: every direction's
+    returns within 1.5-3 m of the sensor at zero intensity, beside the surfaces' returns (intensity
+    ``intensity_of_surfaces``). Returns the particles after the first update and its true pose."""
+    town, caster, m, path, geo = world
+    s = small_settings()
+    s.init.prior_skip_zero_intensity = skip
+    loc = build_localizer(m, s, seed=3, caster=caster)
+    loc.spread()
+    rng = np.random.default_rng(4)
+    for k in range(30, 50):
+        surface = scan_at(town, caster, geo, path[k])
+        d = rng.normal(size=(2 * len(surface), 3))
+        fog = d / np.linalg.norm(d, axis=1)[:, None] * rng.uniform(1.5, 3.0, (len(d), 1))
+        points = np.vstack([surface, fog]).astype(np.float32)
+        intensity = np.concatenate([np.full(len(surface), intensity_of_surfaces), np.zeros(len(fog))])
+        if loc.step(se2_between(path[k - 1], path[k]), points, intensity=intensity).updated:
+            return loc.particles.copy(), path[k]
+    raise AssertionError("no update")
+
+
+def test_returns_of_zero_intensity_are_left_out_of_the_prior_match(world):
+    """`init.prior_skip_zero_intensity`: fog's echoes (zero intensity, two for every surface return, in
+    every direction near the sensor) make every place of the prior look enclosed, so its first draw
+    misses the true place; left out, the draw holds it. A scan whose returns all report zero (the ideal
+    sensor) keeps every return: the same particles as without the setting."""
+
+    def near_truth(particles, truth):
+        d = np.hypot(particles[:, 0] - truth[0], particles[:, 1] - truth[1])
+        dyaw = np.abs((particles[:, 2] - truth[2] + np.pi) % (2 * np.pi) - np.pi)
+        return int(((d < 1.5) & (dyaw < math.radians(5))).sum())
+
+    kept, truth = _fog_first_draw(world, skip=False, intensity_of_surfaces=0.3)
+    left_out, _ = _fog_first_draw(world, skip=True, intensity_of_surfaces=0.3)
+    assert near_truth(left_out, truth) >= 5
+    assert near_truth(kept, truth) < near_truth(left_out, truth) / 2
+    # all zero: nothing is left out
+    ideal_skip, _ = _fog_first_draw(world, skip=True, intensity_of_surfaces=0.0)
+    ideal_keep, _ = _fog_first_draw(world, skip=False, intensity_of_surfaces=0.0)
+    assert np.array_equal(ideal_skip, ideal_keep)

@@ -108,3 +108,17 @@ def test_top_elevation_is_the_brute_force_maximum_on_random_scans():
             p[rng.integers(n)] = 0.0
         expected = float(np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1])).max())
         assert top_elevation(p) == expected, (t, p)
+
+
+def test_lit_returns_leave_out_zero_intensity_only_where_some_return_is_lit():
+    """The returns above zero intensity, where any is; all of them when none is (the ideal sensor, a
+    source without intensity); an intensity array of another length is one error."""
+    from rangemcl.errors import InputError
+    from rangemcl.localization.scan_prep import lit_returns
+
+    rng = np.random.default_rng(3)
+    it = np.where(rng.random(1000) < 0.7, 0.0, rng.uniform(0.01, 1.0, 1000))
+    assert np.array_equal(lit_returns(it, 1000), it > 0)
+    assert lit_returns(np.zeros(50), 50).all() and len(lit_returns(np.zeros(50), 50)) == 50
+    with pytest.raises(InputError, match="intensity of 49 returns for a scan of 50 points"):
+        lit_returns(np.ones(49), 50)
