@@ -3,7 +3,7 @@
 # The package's version is the localizer's (semantic versioning; CHANGELOG.md says what each changed): a
 # minor release changes what the localizer computes, a patch release does not. Trial keys and result files
 # carry it.
-__version__ = "0.17.1"
+__version__ = "0.18.0.dev0"
 
 
 def method_version(version: str = __version__) -> str:

@@ -385,7 +385,7 @@ def test_ray_breakdown_tool_classes_every_ray_and_costs_it_as_the_kernel_does(to
     root = Path(__file__).resolve().parents[1]
     tool = root / "tools" / "ray_breakdown.py"
     seq, m = str(town / "test_run"), str(town / "map")
-    for config in ([], ["--config", str(root / "configs" / "candidate.yaml")]):
+    for config in ([], ["--config", str(root / "configs" / "v0.17.yaml")]):
         args = [
             "--seq",
             seq,

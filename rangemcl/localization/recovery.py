@@ -52,7 +52,8 @@ class RecoveryMixin:
             # the prior search carries its rivals through the probation instead of second opinions
             rivals = self.convergence == "prior" and self._rivals is not None
             self.lost.start_probation(with_opinions=not rivals)
-            challenge = self.challenge_top > 0 and self.challenge_places > 0
+            # the challenge is the particle search's (the prior search's newborns and rivals play its part)
+            challenge = self.convergence == "hypotheses" and self.challenge_top > 0 and self.challenge_places > 0
             self._challenges_left = self.lost.probation_updates if challenge else 0
 
     def _watch(

@@ -175,22 +175,24 @@ class ObservationSettings:
     of the map): at the car's true pose it met an object the map lacks (a car parked since the mapping
     drive, a moving actor), which every pose explains alike, weak evidence against the pose. At most
     `cap_m`; `None`: `cap_m` (both directions alike)."""
-    movable_height_m: float | None = None
+    movable_height_m: float | None = 4.0
     """Height in m above the ground up to which the world may have changed since the mapping drive (the
     tallest vehicle: parked cars come and go, vehicles and people move). `cap_short_m` and `cap_beyond_m`
     apply only to rays whose measured point (short) or whose map surface (beyond) lies below it; above it
-    nothing appears or vanishes between drives, and such a ray costs `cap_m`. `None`: every height."""
-    vehicle_length_m: float | None = None
+    nothing appears or vanishes between drives, and such a ray costs `cap_m`. `None`: every height (the
+    method of version 0.17 and before)."""
+    vehicle_length_m: float | None = 7.0
     """Leave out the scan's points on objects that may be parked vehicles: objects standing on the road
     (points in touching 0.3 m cells) from 1 m up to this long, in m (the longest parked vehicle), at
     most 3 m wide and no taller than `movable_height_m`. Parked cars stand a few decimetres off where the
     mapping drive's stood, or not at all, and pull the pose by that much where little else fixes it.
-    Poles and trunks (under 1 m) stay. `None`: every point."""
-    explain_beyond: bool = False
+    Poles and trunks (under 1 m) stay. `None`: every point (the method of version 0.17 and before)."""
+    explain_beyond: bool = True
     """A ray measured more than `cap_m` beyond the map's surface costs `cap_beyond_m` only where the map
     has a surface within `cap_m` of its measured point: the scan saw past an object gone since the mapping
     drive to what the map holds behind it. Otherwise it passed through the map into nothing the map
-    knows, which a removed object does not explain, and costs `cap_m`. One more ray cast per such ray."""
+    knows, which a removed object does not explain, and costs `cap_m`. One more ray cast per such ray.
+    `false`: every such ray costs `cap_beyond_m` (the method of version 0.17 and before)."""
     rendering: str = "exact"
     """How the filter renders many poses that lie close around a few: `exact` (every pose's rays cast
     through the map) or `planar` (the rays cast once from a reference pose; each pose's rendered range is
@@ -298,7 +300,7 @@ class ConvergenceSettings:
     """`method: hypotheses`: the best this many poses (at least 1) of each polished hypothesis's fine grid
     join the cloud. The range likelihood is sharply peaked, so without the polish a place is judged by
     particles off its peak; more poses hold the peak's neighbourhood too, at the cost of a larger cloud."""
-    challenge_top: int = 0
+    challenge_top: int = 100
     """`method: hypotheses`: before the search converges, the place prior's best this many (cell, yaw)
     places for the scan challenge the leader (those farther than `separation_m` from it), and through the
     recovery's probation after it converged (`recovery.probation_updates`) they challenge the converged
@@ -306,7 +308,7 @@ class ConvergenceSettings:
     place each a hypothesis with the weight its evidence gives it. The test's margin is measured against
     the rivals the cloud holds; a look-alike that the cloud never drew, or lost while its particles lay
     off its likelihood's peak, is no rival to it, and a leader can win by many nats over places that were
-    never its match. 0 (the default): no challenge; `configs/challenge.yaml` turns it on (100)."""
+    never its match. 0: no challenge (the method of version 0.17 and before)."""
     challenge_places: int = 16
     """`method: hypotheses`: the best this many distinct challengers (3 m apart) are searched around
     with the polish's grids, as the leader is, and compared with it over the recent scans

@@ -163,13 +163,12 @@ def test_a_three_percent_wheel_error_is_calibrated_away_in_a_corridor(corridor):
     assert np.abs(along0[-50:]).mean() > 3 * np.abs(along[-50:]).mean()
 
 
-def test_scale_as_particle_state_is_learned_only_without_the_refinement(corridor):
+def test_scale_as_particle_state_is_learned_without_the_refinement(corridor):
     """The alternative estimator (``motion.calibration: particles``): each particle carries its own scale
     and the weighting selects. With motion noise below the wheel's error (1 % of the distance) and no
-    refinement it learns the 3 % error; with the refinement, which moves the whole cloud onto the scan
-    at every update, the particles' positions no longer carry their scale's effect and the selection is
-    lost (README: the slow estimator is the default for this reason)."""
+    refinement it learns the 3 % error. (With the refinement, which moves the whole cloud onto the scan at
+    every update, the selection rests on what the refinement leaves of each particle's offset: in this
+    corridor it ended 0.54 % off with version 0.17's observation model and 0.23 % off with 0.18's, so
+    nothing is asserted of it.)"""
     loc, _ = _track(corridor, True, mode="particles", refine=False, noise=0.01)
     assert loc.calibrator.scale == pytest.approx(1 / 0.97, rel=0.005)
-    loc, _ = _track(corridor, True, mode="particles", refine=True, noise=0.01)
-    assert abs(loc.calibrator.scale - 1 / 0.97) > 0.005

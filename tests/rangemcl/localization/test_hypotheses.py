@@ -131,6 +131,19 @@ def twin_settings() -> LocalizerSettings:
     return s
 
 
+def as_shipped_prior_search(s: LocalizerSettings) -> LocalizerSettings:
+    """The prior search as `configs/prior.yaml` and `configs/fast.yaml` ship it: without version 0.18's
+    additions to the default (the vehicle points, `explain_beyond`, `movable_height_m`, the challenge),
+    which it was measured without. (With them, on two identical streets matched a dozen cells at a time,
+    it converged before the marker: some of these streets' low facades, under 7 m long and 4 m tall, are
+    vehicles to an 8-beam sensor that never sees their tops, and leave the scans.)"""
+    s.convergence.method = "prior"
+    s.convergence.challenge_top = 0
+    s.observation.vehicle_length_m = s.observation.movable_height_m = None
+    s.observation.explain_beyond = False
+    return s
+
+
 def scan_at(caster, geo, pose):
     x, y, yaw = pose
     c, s = math.cos(yaw), math.sin(yaw)
@@ -377,7 +390,7 @@ def test_a_look_alike_refreshed_by_the_prior_every_update_caps_the_margin_until_
     and the test decides, for the true street."""
     caster, m = twin_streets
     geo = RangeImageGeometry.for_spec(load_spec("vlp-16").with_columns(360))
-    # 120 m: over seeds 1-10 the default converges after 52-67 updates, the candidate settings after 57-85
+    # 120 m: over seeds 1-10 the default converges after 52-67 updates, the default of version 0.18 after 57-85 (written for 0.17, whose default was the first)
     path = np.column_stack([np.arange(0.0, 120.0, 1.0), np.zeros(120), np.zeros(120)])
     s = twin_settings()
     s.init.inject_top = 6
@@ -435,7 +448,7 @@ def test_a_sparse_sensor_waits_for_the_one_distinct_street_among_k_identical_one
     geo = RangeImageGeometry.for_spec(load_spec("mq-8").with_columns(360))
     path = np.column_stack([np.arange(0.0, 140.0, 0.8), np.zeros(175), np.zeros(175)])
     s = twin_settings()
-    s.convergence.challenge_top = 100  # configs/challenge.yaml
+    s.convergence.challenge_top = 100  # the default, explicit: the test is about it
     s.particles.global_count = 1000  # (CI time: the search shrinks its cloud to this size anyway)
     s.observation = ObservationSettings(rays=100, max_range_m=40.0)
     loc = build_localizer(m, s, seed=1, caster=caster)
@@ -465,7 +478,7 @@ def test_a_wrong_convergence_planted_in_a_run_is_caught_within_10_frames(renderi
     geo = RangeImageGeometry.for_spec(load_spec("mq-8").with_columns(360))
     path = np.column_stack([np.arange(0.0, 140.0, 0.8), np.zeros(175), np.zeros(175)])
     s = twin_settings()
-    s.convergence.challenge_top = 100  # configs/challenge.yaml
+    s.convergence.challenge_top = 100  # the default, explicit: the test is about it
     s.observation.rendering = rendering
     loc = build_localizer(m, s, seed=2, caster=caster)
     loc.start_at(path[50])
@@ -503,8 +516,8 @@ def test_the_prior_search_waits_for_the_one_distinct_street_among_k_identical_on
     geo = RangeImageGeometry.for_spec(load_spec("mq-8").with_columns(360))
     path = np.column_stack([np.arange(0.0, 140.0, 0.8), np.zeros(175), np.zeros(175)])
     s = twin_settings()
-    s.convergence.method = "prior"
     s.observation = ObservationSettings(rays=100, max_range_m=40.0)
+    s = as_shipped_prior_search(s)
     loc = build_localizer(m, s, seed=1, caster=caster)
     loc.spread()
     converged_at, streets = None, set()
@@ -537,19 +550,23 @@ def test_the_prior_search_refuses_a_map_held_within_a_budget():
         build_localizer(m, s, seed=1, caster=caster)
 
 
-def test_the_prior_search_carries_its_rivals_through_the_probation_and_undoes_a_wrong_convergence():
+@pytest.mark.parametrize("shipped", [True, False])
+def test_the_prior_search_carries_its_rivals_through_the_probation_and_undoes_a_wrong_convergence(shipped):
     """The prior search's probation (the search goes on beside the tracking instead of second opinions).
     A correct convergence on the marked street of two is left alone through it. Then a convergence is
     planted on the twin street with the marker in reach, the true street left as the rival it beat by a
     nat, as a search that converged on the twin would leave them: the true street's
     evidence overtakes the twin's and the convergence is undone within the probation's 10 updates (the
-    search takes up again, no spread), and the search converges again, on the marked street."""
+    search takes up again, no spread), and the search converges again, on the marked street. As shipped
+    and with today's defaults, whose challenge of the particle search it leaves alone (its newborns and
+    rivals play that part: the challenge reopened a search of particles it does not hold)."""
     caster, m = k_streets(2)
     geo = RangeImageGeometry.for_spec(load_spec("mq-8").with_columns(360))
     path = np.column_stack([np.arange(0.0, 140.0, 0.8), np.zeros(175), np.zeros(175)])
     s = twin_settings()
-    s.convergence.method = "prior"
     s.observation = ObservationSettings(rays=100, max_range_m=40.0, rendering="planar")
+    s = as_shipped_prior_search(s) if shipped else s
+    s.convergence.method = "prior"
     loc = build_localizer(m, s, seed=1, caster=caster)
     loc.spread()
     converged_at = None
