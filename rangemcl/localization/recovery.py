@@ -53,7 +53,8 @@ class RecoveryMixin:
             rivals = self.convergence == "prior" and self._rivals is not None
             self.lost.start_probation(with_opinions=not rivals)
             # the challenge is the particle search's (the prior search's newborns and rivals play its part)
-            challenge = self.convergence == "hypotheses" and self.challenge_top > 0 and self.challenge_places > 0
+            challenge = self.challenge_top > 0 and self.challenge_places > 0
+            challenge = challenge and self.convergence == "hypotheses"
             self._challenges_left = self.lost.probation_updates if challenge else 0
 
     def _watch(

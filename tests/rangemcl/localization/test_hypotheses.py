@@ -390,7 +390,7 @@ def test_a_look_alike_refreshed_by_the_prior_every_update_caps_the_margin_until_
     and the test decides, for the true street."""
     caster, m = twin_streets
     geo = RangeImageGeometry.for_spec(load_spec("vlp-16").with_columns(360))
-    # 120 m: over seeds 1-10 the default converges after 52-67 updates, the default of version 0.18 after 57-85 (written for 0.17, whose default was the first)
+    # 120 m: over seeds 1-10 the default of version 0.17 converges after 52-67 updates, 0.18's after 57-85
     path = np.column_stack([np.arange(0.0, 120.0, 1.0), np.zeros(120), np.zeros(120)])
     s = twin_settings()
     s.init.inject_top = 6
