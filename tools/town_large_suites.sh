@@ -22,8 +22,6 @@
 #   robustness the robustness suite with configs/fast.yaml, 5 presets x 10 starts at each realism level:
 #             ideal and realistic first (its ideal level runs the sensors suite's trials: the same drives,
 #             starts and seeds), then rain, dropout and fog; not in the default steps (STEPS=robustness)
-#   candidate both suites with configs/candidate.yaml, the candidate for the next default method, on the
-#             same drives, starts and seeds; not in the default steps (STEPS=candidate)
 set -euo pipefail
 REPO=$(cd "$(dirname "$0")/.." && pwd)
 DATA=${1:-/work/data}
@@ -120,12 +118,5 @@ if want robustness; then
       --levels $levels --config src/configs/fast.yaml
   done
   stamp robustness
-fi
-if want candidate; then
-  "${SIMBED[@]}" trials sensors --out suites/large "${SUITE[@]}" --sensors $SENSORS \
-    --config src/configs/candidate.yaml
-  "${SIMBED[@]}" trials particles --out suites/large "${SUITE[@]}" --models range \
-    --counts 1000,5000,10000 --config src/configs/candidate.yaml
-  stamp candidate
 fi
 echo "town_large_suites: finished $(date -u +%FT%TZ)"
