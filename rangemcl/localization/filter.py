@@ -632,7 +632,8 @@ class MonteCarloLocalizer(SearchMixin, PriorSearchMixin, RecoveryMixin):
         that report intensity above zero where some do (:func:`lit_returns`)."""
         if not self.prior_skip_zero_intensity or points is None or intensity is None:
             return points
-        return np.asarray(points)[lit_returns(intensity, len(points))]
+        lit = lit_returns(intensity, len(points))
+        return points if lit.all() else np.asarray(points)[lit]
 
     def _update(self, rays: ScanRays, points: np.ndarray, roll_pitch) -> dict:
         """An update with a scan (the particles have moved): the search's first draw from the place prior,

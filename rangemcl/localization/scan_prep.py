@@ -186,7 +186,7 @@ def vehicle_points(
         elevation = np.arctan2(p[idx, 2], rng_xy)
     # each object's points, in their order, as one slice of a stable sort by object
     order = np.argsort(comp, kind="stable")
-    start = np.concatenate([[0], np.cumsum(np.bincount(comp, minlength=n))])
+    start = np.concatenate([[0], np.cumsum(count).astype(np.int64)])
     for k in np.flatnonzero(vehicle):
         mine = order[start[k] : start[k + 1]]
         if top[k] > VEHICLE_CUT_TOP_M and elevation[mine].max() > top_beam - VEHICLE_TOP_BEAM_MARGIN:
